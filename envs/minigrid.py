@@ -1,0 +1,2 @@
+def make_minigrid_env(*a, **k):
+    raise NotImplementedError
