@@ -1,0 +1,102 @@
+"""``freamer-rl`` command line: train, eval, params.
+
+    freamer-rl train recipes/minigrid_multiroom_n2s4.yaml ppo.lr=3e-4 run.seed=1
+    freamer-rl eval runs/<name>/checkpoints/checkpoint_000100000.pt --episodes 50
+    freamer-rl params recipes/minigrid_multiroom_n2s4_clip.yaml
+
+User errors (bad recipe key or type, unknown env id, a modality the env lacks, missing CLIP weights, a checkpoint
+from another config) print one ``error:`` line and exit with status 2; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from pathlib import Path
+
+from freamer_rl.errors import FreamerError
+
+logger = logging.getLogger("freamer_rl")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="freamer-rl", description="FreamerV1 with TorchRL")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks for user errors")
+    parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p_train = sub.add_parser("train", help="train from a YAML recipe")
+    p_train.add_argument("recipe", help="path to a recipe YAML")
+    p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. ppo.lr=3e-4 run.seed=1")
+    p_train.add_argument("--run-dir", default=None, help="run directory (default: run.output_dir/run.name)")
+    p_train.add_argument("--no-resume", action="store_true", help="ignore checkpoints already in the run directory")
+
+    p_eval = sub.add_parser("eval", help="evaluate a checkpoint")
+    p_eval.add_argument("checkpoint", help="a checkpoint .pt file or a run directory (uses its latest checkpoint)")
+    p_eval.add_argument("--episodes", type=int, default=20)
+    p_eval.add_argument("--deterministic", action="store_true", help="argmax actions instead of sampling")
+    p_eval.add_argument("--num-envs", type=int, default=None)
+    p_eval.add_argument("--seed", type=int, default=12345)
+
+    p_params = sub.add_parser("params", help="print the parameter table (trainable vs frozen per component)")
+    p_params.add_argument("recipe")
+    p_params.add_argument("overrides", nargs="*")
+    p_params.add_argument("--markdown", action="store_true")
+    return parser
+
+
+def _run(args: argparse.Namespace) -> int:
+    if args.command == "train":
+        from freamer_rl.config import load_config
+        from freamer_rl.train import train
+
+        cfg = load_config(args.recipe, args.overrides)
+        summary = train(cfg, args.run_dir, resume=not args.no_resume)
+        logger.info("summary: %s", json.dumps(summary))
+        return 0
+    if args.command == "eval":
+        from freamer_rl.evaluate import evaluate
+        from freamer_rl.train import latest_checkpoint
+
+        path = Path(args.checkpoint)
+        if path.is_dir():
+            found = latest_checkpoint(path)
+            if found is None:
+                raise FreamerError(f"no checkpoint in run directory {path}")
+            path = found
+        result = evaluate(
+            path, episodes=args.episodes, deterministic=args.deterministic, num_envs=args.num_envs, seed=args.seed
+        )
+        sys.stdout.write(json.dumps(result, indent=2) + "\n")
+        return 0
+    if args.command == "params":
+        from freamer_rl.config import load_config
+        from freamer_rl.params import format_parameter_table, parameter_table
+        from freamer_rl.train import build_modules
+
+        cfg = load_config(args.recipe, args.overrides)
+        table = parameter_table(build_modules(cfg))
+        sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n")
+        return 0
+    raise AssertionError(args.command)
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    logging.basicConfig(level=getattr(logging, args.log_level), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    try:
+        return _run(args)
+    except FreamerError as err:
+        if args.debug:
+            raise
+        sys.stderr.write(f"error: {err}\n")
+        return 2
+    except KeyboardInterrupt:
+        sys.stderr.write("interrupted: rerun the same command to resume from the latest checkpoint\n")
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

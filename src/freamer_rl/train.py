@@ -1,0 +1,625 @@
+"""Training loop: TorchRL Collector -> values/GAE -> sequence replay buffer -> ClipPPOLoss + auxiliary losses.
+
+One call of :func:`train` owns one run directory::
+
+    runs/<name>/config.yaml        resolved config
+    runs/<name>/run_info.json      git commit, versions, command
+    runs/<name>/progress.csv       one row per batch (frames, episodes, success, return, losses, gates, fps)
+    runs/<name>/metrics/           the selected TorchRL logger's files (CSV by default; wandb / tensorboard)
+    runs/<name>/checkpoints/       periodic checkpoints + latest.pt (a rerun resumes from it)
+    runs/<name>/learning_curve.png success rate and return vs frames
+    runs/<name>/summary.json       final figures
+
+Design notes:
+- Values for GAE are computed in *step mode* on the stored per-step DNC states (exact and one batched pass);
+  GAE itself is TorchRL's, given precomputed ``state_value`` / ``("next", "state_value")``.
+- Minibatches are whole sequences (``ppo.sequence_length`` steps) so the DNC trains in recurrent mode from the
+  stored state at t=0 (TorchRL's recurrent pattern).
+- The trunk runs once per minibatch; ClipPPOLoss receives the actor and value heads (TorchRL's shared-trunk option).
+- The model stays in eval mode: no dropout and deterministic slot initialisation, so the log-probabilities the
+  loss recomputes match the ones stored at collection time.
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import json
+import logging
+import math
+import os
+import subprocess
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from tensordict import TensorDictBase
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import SamplerWithoutReplacement
+from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, StepCounter, TransformedEnv
+from torchrl.modules import set_recurrent_mode
+from torchrl.objectives import ClipPPOLoss
+from torchrl.objectives.value import GAE
+
+from freamer_rl import env_registry
+from freamer_rl.config import FreamerConfig, config_to_dict
+from freamer_rl.errors import CheckpointError, FreamerError
+from freamer_rl.factory import FreamerModules, build_freamer
+from freamer_rl.losses import FreamerAuxLoss
+
+logger = logging.getLogger(__name__)
+
+SUCCESS_TARGET = 0.95
+# Keys that only matter at collection time or cannot live in a tensor storage.
+_DROP_KEYS = ("mission", ("next", "mission"))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Environments
+# --------------------------------------------------------------------------------------------------------------
+
+
+def env_options(cfg: FreamerConfig) -> dict[str, Any]:
+    """Adapter keyword options implied by the config (pixels are rendered only when vision is used)."""
+    if cfg.env.adapter == "minigrid":
+        return {
+            "pixels": "vision" in cfg.model.modalities,
+            "reward_history": cfg.env.reward_history,
+            "max_mission_tokens": cfg.env.max_mission_tokens,
+        }
+    return {}
+
+
+def make_single_env(cfg: FreamerConfig, seed: int | None = None) -> EnvBase:
+    return env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
+
+
+def _single_env_fn(adapter: str, env_id: str, options: dict) -> EnvBase:
+    return env_registry.make_env(adapter, env_id, **options)
+
+
+def make_batched_env(cfg: FreamerConfig, primers: list, seed: int, num_envs: int | None = None) -> EnvBase:
+    """``num_envs`` copies in one process (SerialEnv: 2 cores do not profit from ParallelEnv) plus
+    InitTracker, StepCounter, RewardSum and the model's state primers."""
+    n = num_envs or cfg.env.num_envs
+    fn = functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg))
+    base = SerialEnv(n, fn)
+    env = TransformedEnv(base, Compose(InitTracker(), StepCounter(), RewardSum(), *[p.clone() for p in primers]))
+    env.set_seed(seed)
+    return env
+
+
+def probe_specs(cfg: FreamerConfig):
+    """Unbatched observation and action specs of the configured env (also validates the env id)."""
+    env = make_single_env(cfg)
+    try:
+        return env.observation_spec.clone(), env.action_spec.clone()
+    finally:
+        env.close()
+
+
+def build_modules(cfg: FreamerConfig) -> FreamerModules:
+    obs_spec, act_spec = probe_specs(cfg)
+    return build_freamer(obs_spec, act_spec, cfg.model, env_name=f"env '{cfg.env.id}'")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Run bookkeeping
+# --------------------------------------------------------------------------------------------------------------
+
+
+def git_commit() -> dict[str, Any]:
+    here = Path(__file__).resolve().parent
+    try:
+        sha = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
+        ).stdout.strip()
+        dirty = bool(
+            subprocess.run(
+                ["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True, timeout=5
+            ).stdout.strip()
+        )
+        return {"commit": sha, "dirty": dirty}
+    except (OSError, subprocess.SubprocessError) as err:
+        logger.warning("could not read the git commit (%s); run_info.json records none", err)
+        return {"commit": None, "dirty": None}
+
+
+def default_run_name(cfg: FreamerConfig) -> str:
+    env_short = cfg.env.id.replace("MiniGrid-", "").replace("-v0", "")
+    return f"{env_short}-s{cfg.run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
+
+
+@dataclass
+class EpisodeStats:
+    """Running episode statistics over the whole run and a success window of the last ``window`` episodes."""
+
+    window: int = 100
+    episodes: int = 0
+    recent_success: deque = field(default_factory=deque)
+    recent_return: deque = field(default_factory=deque)
+    recent_length: deque = field(default_factory=deque)
+    first_target_frames: int | None = None
+    first_target_episodes: int | None = None
+
+    def update(self, data: TensorDictBase, frames_before: int) -> None:
+        nxt = data["next"]
+        done = nxt["done"].squeeze(-1)
+        if not done.any():
+            return
+        # frames at which each episode ended: position in the [B, T] batch, ordered by time then env
+        B = done.shape[0] if done.ndim > 1 else 1
+        done_bt = done.reshape(B, -1)
+        t_idx = done_bt.nonzero()
+        order = torch.argsort(t_idx[:, 1] * B + t_idx[:, 0])
+        t_idx = t_idx[order]
+        rets = nxt["episode_reward"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
+        lens = nxt["step_count"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
+        term = nxt["terminated"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
+        rew = nxt["reward"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
+        for i in range(t_idx.shape[0]):
+            self.episodes += 1
+            success = bool(term[i]) and float(rew[i]) > 0
+            self._push(self.recent_success, float(success))
+            self._push(self.recent_return, float(rets[i]))
+            self._push(self.recent_length, float(lens[i]))
+            if (
+                self.first_target_episodes is None
+                and len(self.recent_success) >= self.window
+                and self.success_rate >= SUCCESS_TARGET
+            ):
+                self.first_target_episodes = self.episodes
+                self.first_target_frames = frames_before + int((t_idx[i, 1] + 1) * B)
+
+    def _push(self, q: deque, v: float) -> None:
+        q.append(v)
+        while len(q) > self.window:
+            q.popleft()
+
+    @property
+    def success_rate(self) -> float:
+        return sum(self.recent_success) / len(self.recent_success) if self.recent_success else float("nan")
+
+    @property
+    def mean_return(self) -> float:
+        return sum(self.recent_return) / len(self.recent_return) if self.recent_return else float("nan")
+
+    @property
+    def mean_length(self) -> float:
+        return sum(self.recent_length) / len(self.recent_length) if self.recent_length else float("nan")
+
+    def state_dict(self) -> dict:
+        return {
+            "window": self.window,
+            "episodes": self.episodes,
+            "recent_success": list(self.recent_success),
+            "recent_return": list(self.recent_return),
+            "recent_length": list(self.recent_length),
+            "first_target_frames": self.first_target_frames,
+            "first_target_episodes": self.first_target_episodes,
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.window = sd["window"]
+        self.episodes = sd["episodes"]
+        self.recent_success = deque(sd["recent_success"])
+        self.recent_return = deque(sd["recent_return"])
+        self.recent_length = deque(sd["recent_length"])
+        self.first_target_frames = sd["first_target_frames"]
+        self.first_target_episodes = sd["first_target_episodes"]
+
+
+def plot_learning_curve(rows: list[dict], path: Path, title: str = "") -> None:
+    """Success rate (last-100 window) and mean return vs frames, one PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    frames = [r["frames"] for r in rows]
+    fig, ax1 = plt.subplots(figsize=(7, 4))
+    ax1.plot(frames, [r["success_rate"] for r in rows], color="tab:green", label="success rate (last 100 ep.)")
+    ax1.set_xlabel("frames")
+    ax1.set_ylabel("success rate")
+    ax1.set_ylim(-0.02, 1.02)
+    ax1.axhline(SUCCESS_TARGET, color="tab:green", ls=":", lw=0.8)
+    ax2 = ax1.twinx()
+    ax2.plot(frames, [r["return_mean"] for r in rows], color="tab:blue", alpha=0.7, label="mean return")
+    ax2.set_ylabel("mean return")
+    lines = ax1.get_lines()[:1] + ax2.get_lines()
+    ax1.legend(lines, [ln.get_label() for ln in lines], loc="lower right")
+    ax1.set_title(title)
+    fig.tight_layout()
+    tmp = path.with_suffix(".tmp.png")
+    fig.savefig(tmp, dpi=100)
+    plt.close(fig)
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Checkpoints
+# --------------------------------------------------------------------------------------------------------------
+
+# Config sections whose change makes a checkpoint incompatible with a run.
+_STRUCTURAL_SECTIONS = ("model", "env")
+
+
+def _structural_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
+    diffs = []
+    for key in sorted(set(a) | set(b)):
+        va, vb = a.get(key), b.get(key)
+        name = f"{prefix}.{key}" if prefix else key
+        if isinstance(va, dict) and isinstance(vb, dict) and key != "gate_init":
+            diffs += _structural_diff(va, vb, name)
+        elif va != vb:
+            diffs.append(f"{name}: checkpoint {va!r} vs now {vb!r}")
+    return diffs
+
+
+def check_checkpoint_config(saved: dict, current: dict, path: Path) -> None:
+    diffs = []
+    for section in _STRUCTURAL_SECTIONS:
+        diffs += _structural_diff(saved.get(section, {}), current.get(section, {}), section)
+    if diffs:
+        raise CheckpointError(f"checkpoint {path} comes from another config ({'; '.join(diffs[:4])})")
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint not found: {path}")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as err:  # torch.load raises many types (pickle, zip, EOF); report the file, keep the cause
+        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {err}") from err
+    if not isinstance(ckpt, dict) or "model" not in ckpt or "config" not in ckpt:
+        raise CheckpointError(f"{path} is not a freamer_rl checkpoint (no 'model'/'config' entries)")
+    return ckpt
+
+
+def load_model_state(modules: FreamerModules, state: dict, path: Path) -> None:
+    try:
+        modules.actor_value.load_state_dict(state)
+    except RuntimeError as err:
+        first = str(err).splitlines()[0]
+        raise CheckpointError(f"checkpoint {path} does not fit this model: {first}") from err
+
+
+def save_checkpoint(run_dir: Path, payload: dict, keep: int = 3) -> Path:
+    ckpt_dir = run_dir / "checkpoints"
+    ckpt_dir.mkdir(parents=True, exist_ok=True)
+    path = ckpt_dir / f"checkpoint_{payload['frames']:09d}.pt"
+    tmp = ckpt_dir / ".tmp.pt"
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+    latest_tmp = ckpt_dir / ".latest.tmp"
+    latest_tmp.write_text(path.name)
+    os.replace(latest_tmp, ckpt_dir / "latest")
+    for old in sorted(ckpt_dir.glob("checkpoint_*.pt"))[:-keep]:
+        old.unlink()
+    return path
+
+
+def latest_checkpoint(run_dir: Path) -> Path | None:
+    marker = run_dir / "checkpoints" / "latest"
+    if not marker.is_file():
+        return None
+    path = run_dir / "checkpoints" / marker.read_text().strip()
+    return path if path.is_file() else None
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The loop
+# --------------------------------------------------------------------------------------------------------------
+
+
+class Trainer:
+    """PPO on FreamerV1 with TorchRL parts. ``Trainer(cfg, run_dir).train()``; see the module docstring."""
+
+    def __init__(self, cfg: FreamerConfig, run_dir: str | Path, *, resume: bool = True) -> None:
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        torch.set_num_threads(cfg.run.threads)
+        torch.manual_seed(cfg.run.seed)
+        self.modules = build_modules(cfg)
+        self.modules.actor_value.eval()  # see module docstring: deterministic trunk for consistent log-probs
+        p = cfg.ppo
+        self.ppo_loss = ClipPPOLoss(
+            self.modules.actor,
+            self.modules.critic,
+            clip_epsilon=p.clip_epsilon,
+            entropy_coeff=p.entropy_coeff,
+            critic_coeff=p.critic_coeff,
+            loss_critic_type="l2",
+            normalize_advantage=p.normalize_advantage,
+            functional=False,
+        )
+        self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=None, average_gae=False)
+        self.aux_loss = FreamerAuxLoss(
+            self.modules.refiners,
+            lambda_fm=p.lambda_fm,
+            lambda_cl=p.lambda_cl,
+            lambda_smooth=p.lambda_smooth,
+            noise_std=cfg.model.flow.noise_std,
+        )
+        self.params = [q for q in self.modules.actor_value.parameters() if q.requires_grad]
+        self.optimizer = torch.optim.Adam(self.params, lr=p.lr, eps=p.adam_eps)
+        self.frames = 0
+        self.batches = 0
+        self.stats = EpisodeStats(window=cfg.logging.success_window)
+        self.rows: list[dict] = []
+        self.wall_time = 0.0
+        self.resumed_from: Path | None = None
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if resume and (ckpt_path := latest_checkpoint(self.run_dir)) is not None:
+            self._resume(ckpt_path)
+        self._write_run_files()
+
+    # -- bookkeeping ----------------------------------------------------------------------------------------
+    def _write_run_files(self) -> None:
+        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
+        import tensordict
+        import torchrl
+
+        info = {
+            **git_commit(),
+            "command": sys.argv,
+            "torch": torch.__version__,
+            "torchrl": torchrl.__version__,
+            "tensordict": tensordict.__version__,
+            "resumed_from": str(self.resumed_from) if self.resumed_from else None,
+            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        }
+        (self.run_dir / "run_info.json").write_text(json.dumps(info, indent=2))
+
+    def _resume(self, path: Path) -> None:
+        ckpt = load_checkpoint(path)
+        check_checkpoint_config(ckpt["config"], config_to_dict(self.cfg), path)
+        load_model_state(self.modules, ckpt["model"], path)
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        self.frames = ckpt["frames"]
+        self.batches = ckpt["batches"]
+        self.stats.load_state_dict(ckpt["stats"])
+        self.rows = ckpt["rows"]
+        self.wall_time = ckpt.get("wall_time", 0.0)
+        torch.set_rng_state(ckpt["torch_rng"])
+        self.resumed_from = path
+        logger.info("resumed from %s at %d frames, %d episodes", path, self.frames, self.stats.episodes)
+
+    def _checkpoint(self) -> Path:
+        payload = {
+            "model": self.modules.actor_value.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "frames": self.frames,
+            "batches": self.batches,
+            "stats": self.stats.state_dict(),
+            "rows": self.rows,
+            "wall_time": self.wall_time,
+            "config": config_to_dict(self.cfg),
+            "torch_rng": torch.get_rng_state(),
+            "format": "freamer_rl/1",
+        }
+        path = save_checkpoint(self.run_dir, payload)
+        if self.rows:
+            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id)
+        return path
+
+    def _make_logger(self):
+        from torchrl.record.loggers import get_logger
+
+        backend = self.cfg.logging.backend
+        kwargs: dict[str, Any] = {}
+        if backend == "wandb":
+            kwargs["wandb_kwargs"] = {"offline": os.environ.get("WANDB_MODE", "offline") == "offline",
+                                      "project": "freamer_rl", "dir": str(self.run_dir)}
+        try:
+            return get_logger(backend, logger_name=str(self.run_dir), experiment_name="metrics", **kwargs)
+        except ImportError as err:
+            extra = {"wandb": "wandb", "tensorboard": "tensorboard"}.get(backend, backend)
+            raise FreamerError(
+                f"logging.backend '{backend}' needs an optional package: pip install 'freamer_rl[{extra}]' ({err})"
+            ) from err
+
+    # -- data -----------------------------------------------------------------------------------------------
+    def _make_collector(self, remaining: int) -> Collector:
+        cfg = self.cfg
+        seed = cfg.run.seed * 10_000 + self.frames  # a resumed run does not replay the same episodes
+        fpb = cfg.ppo.frames_per_batch
+        total = math.ceil(remaining / fpb) * fpb
+        primers = self.modules.primers()
+        if cfg.collector.num_collectors == 1:
+            env_fn = functools.partial(make_batched_env, cfg, primers, seed)
+            return Collector(
+                env_fn, self.modules.policy, frames_per_batch=fpb, total_frames=total,
+                auto_register_policy_transforms=False,
+            )
+        n = cfg.collector.num_collectors
+        env_fns = [functools.partial(make_batched_env, cfg, primers, seed + 1000 * i) for i in range(n)]
+        return Collector(
+            env_fns, self.modules.policy, num_collectors=n, sync=True, frames_per_batch=fpb, total_frames=total,
+            auto_register_policy_transforms=False,
+        )
+
+    @torch.no_grad()
+    def _compute_advantage(self, data: TensorDictBase) -> TensorDictBase:
+        """Step-mode values on the stored states (root and next), then TorchRL's GAE."""
+        value = self.modules.value
+        keys = [k for k in value.in_keys if k != "is_init"]
+        root = data.select(*keys, "is_init", strict=False)
+        nxt = data["next"].select(*keys, strict=False)
+        nxt.set("is_init", torch.zeros_like(data["is_init"]))  # a next state never starts an episode
+        data.set("state_value", value(root)["state_value"])
+        data.set(("next", "state_value"), value(nxt)["state_value"])
+        return self.gae(data)
+
+    def _sequences(self, data: TensorDictBase) -> TensorDictBase:
+        """``[B, T]`` -> ``[B*T/L, L]`` whole sequences for the sequence replay buffer."""
+        L = self.cfg.ppo.sequence_length
+        data = data.exclude(*_DROP_KEYS)
+        B, T = data.batch_size[0], data.batch_size[-1]
+        if data.ndim != 2 or T % L:
+            raise RuntimeError(f"collected batch has shape {tuple(data.batch_size)}; expected [envs, T] with T % {L} == 0")
+        return data.reshape(B, T // L, L).reshape(-1, L)
+
+    # -- optimisation ---------------------------------------------------------------------------------------
+    def _update(self, data: TensorDictBase) -> dict[str, float]:
+        p = self.cfg.ppo
+        seqs = self._sequences(data)
+        seqs_per_mb = p.minibatch_size // p.sequence_length
+        rb = ReplayBuffer(
+            storage=LazyTensorStorage(seqs.shape[0]),
+            sampler=SamplerWithoutReplacement(),
+            batch_size=seqs_per_mb,
+        )
+        rb.extend(seqs)
+        sums: dict[str, float] = {}
+        count = 0
+        for _ in range(p.epochs):
+            for _ in range(max(1, seqs.shape[0] // seqs_per_mb)):
+                mb = rb.sample()
+                with set_recurrent_mode(True):
+                    mb = self.modules.trunk(mb)
+                loss_td = self.ppo_loss(mb)
+                aux_td = self.aux_loss(mb)
+                total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
+                for k in ("loss_fm", "loss_cl", "loss_smooth"):
+                    if k in aux_td.keys():
+                        total = total + aux_td[k]
+                self.optimizer.zero_grad(set_to_none=True)
+                total.backward()
+                grad_norm = torch.nn.utils.clip_grad_norm_(self.params, p.max_grad_norm)
+                self.optimizer.step()
+                logs = {
+                    "loss_total": total.detach(),
+                    "grad_norm": grad_norm,
+                    **{k: v for k, v in loss_td.items() if v.numel() == 1},
+                    **{k: v for k, v in aux_td.items()},
+                }
+                for k, v in logs.items():
+                    sums[k] = sums.get(k, 0.0) + float(v)
+                count += 1
+        return {k: v / count for k, v in sums.items()}
+
+    def _nan_fallbacks(self) -> int:
+        return int(sum(int(getattr(m, "nan_fallbacks", 0)) for m in self.modules.trunk.modules()))
+
+    # -- main -----------------------------------------------------------------------------------------------
+    def train(self) -> dict[str, Any]:
+        cfg = self.cfg
+        remaining = cfg.run.total_frames - self.frames
+        if remaining <= 0:
+            logger.info("run already has %d frames (run.total_frames=%d): nothing to do", self.frames, cfg.run.total_frames)
+            return self._finish()
+        metrics_logger = self._make_logger()
+        collector = self._make_collector(remaining)
+        progress_path = self.run_dir / "progress.csv"
+        next_ckpt = (self.frames // cfg.logging.checkpoint_every_frames + 1) * cfg.logging.checkpoint_every_frames
+        pbar = None
+        if cfg.logging.progress_bar:
+            from tqdm.auto import tqdm
+
+            pbar = tqdm(total=cfg.run.total_frames, initial=self.frames, unit="frames", dynamic_ncols=True,
+                        disable=None)
+        t_start = time.perf_counter()
+        t_batch = t_start
+        try:
+            for data in collector:
+                frames_before = self.frames
+                self.frames += data.numel()
+                self.stats.update(data, frames_before)
+                data = self._compute_advantage(data)
+                losses = self._update(data)
+                collector.update_policy_weights_()
+                self.batches += 1
+                now = time.perf_counter()
+                row = {
+                    "frames": self.frames,
+                    "episodes": self.stats.episodes,
+                    "success_rate": self.stats.success_rate,
+                    "return_mean": self.stats.mean_return,
+                    "episode_length": self.stats.mean_length,
+                    "fps": data.numel() / max(now - t_batch, 1e-9),
+                    **losses,
+                    **{f"gate_{m}": g for m, g in self.modules.gates().items()},
+                    "nan_fallbacks": self._nan_fallbacks(),
+                }
+                t_batch = now
+                self.rows.append(row)
+                self._append_progress(progress_path, row)
+                if metrics_logger is not None and self.batches % cfg.logging.log_every_batches == 0:
+                    for k, v in row.items():
+                        if isinstance(v, (int, float)) and math.isfinite(v):
+                            metrics_logger.log_scalar(k, v, step=self.frames)
+                if pbar is not None:
+                    pbar.update(data.numel())
+                    pbar.set_postfix(ep=self.stats.episodes, success=f"{self.stats.success_rate:.2f}",
+                                     ret=f"{self.stats.mean_return:.2f}")
+                if self.frames >= next_ckpt:
+                    self.wall_time += time.perf_counter() - t_start
+                    t_start = time.perf_counter()
+                    self._checkpoint()
+                    next_ckpt += cfg.logging.checkpoint_every_frames
+                if (
+                    cfg.run.stop_at_success is not None
+                    and len(self.stats.recent_success) >= self.stats.window
+                    and self.stats.success_rate >= cfg.run.stop_at_success
+                ):
+                    logger.info("success rate %.3f >= run.stop_at_success: stopping", self.stats.success_rate)
+                    break
+                if self.frames >= cfg.run.total_frames:
+                    break
+        finally:
+            collector.shutdown()
+            if pbar is not None:
+                pbar.close()
+        self.wall_time += time.perf_counter() - t_start
+        self._checkpoint()
+        return self._finish()
+
+    def _append_progress(self, path: Path, row: dict) -> None:
+        new = not path.exists()
+        if not new:
+            with path.open() as f:
+                header = next(csv.reader(f), [])
+            if header != list(row):
+                # columns changed (e.g. a resumed run with other diagnostics): rewrite from the kept rows
+                new = True
+        with path.open("w" if new else "a", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=list(row))
+            if new:
+                writer.writeheader()
+                for r in self.rows[:-1]:
+                    writer.writerow({k: r.get(k) for k in row})
+            writer.writerow(row)
+
+    def _finish(self) -> dict[str, Any]:
+        summary = {
+            "env": self.cfg.env.id,
+            "seed": self.cfg.run.seed,
+            "frames": self.frames,
+            "episodes": self.stats.episodes,
+            "final_success_rate": self.stats.success_rate,
+            "final_return_mean": self.stats.mean_return,
+            "frames_to_95": self.stats.first_target_frames,
+            "episodes_to_95": self.stats.first_target_episodes,
+            "wall_time_s": self.wall_time,
+            "fps": self.frames / self.wall_time if self.wall_time > 0 else None,
+            "gates": self.modules.gates(),
+            "nan_fallbacks": self._nan_fallbacks(),
+        }
+        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+        if self.rows:
+            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id)
+        return summary
+
+
+def train(cfg: FreamerConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
+    """Train FreamerV1 with the config; returns the run summary (also written to ``summary.json``)."""
+    run_dir = Path(run_dir) if run_dir is not None else Path(cfg.run.output_dir) / (cfg.run.name or default_run_name(cfg))
+    return Trainer(cfg, run_dir, resume=resume).train()
