@@ -151,6 +151,7 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
             layers=cfg.language.layers,
             heads=cfg.language.heads,
             max_len=tok_spec.shape[-1],
+            slot_iters=cfg.language.slot_iters,
         )
         steps.append(TensorDictModule(enc, in_keys=["mission_tokens"], out_keys=[("slots", "language")]))
     if "vision" in modalities:

@@ -72,6 +72,8 @@ def env_options(cfg: FreamerConfig) -> dict[str, Any]:
             "pixels": "vision" in cfg.model.modalities,
             "reward_history": cfg.env.reward_history,
             "max_mission_tokens": cfg.env.max_mission_tokens,
+            # the raw mission string costs ~40% of a step in TorchRL's non-tensor handling; training reads tokens
+            "include_mission": False,
         }
     return {}
 
@@ -153,16 +155,18 @@ class EpisodeStats:
         done = nxt["done"].squeeze(-1)
         if not done.any():
             return
-        # frames at which each episode ended: position in the [B, T] batch, ordered by time then env
-        B = done.shape[0] if done.ndim > 1 else 1
-        done_bt = done.reshape(B, -1)
+        # order episode ends by time, then env; leading dims ([workers, envs]) are flattened into envs
+        T = done.shape[-1]
+        done_bt = done.reshape(-1, T)
+        B = done_bt.shape[0]
         t_idx = done_bt.nonzero()
         order = torch.argsort(t_idx[:, 1] * B + t_idx[:, 0])
         t_idx = t_idx[order]
-        rets = nxt["episode_reward"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
-        lens = nxt["step_count"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
-        term = nxt["terminated"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
-        rew = nxt["reward"].reshape(B, -1)[t_idx[:, 0], t_idx[:, 1]]
+
+        def at_ends(key):
+            return nxt[key].reshape(B, T)[t_idx[:, 0], t_idx[:, 1]]
+
+        rets, lens, term, rew = (at_ends(k) for k in ("episode_reward", "step_count", "terminated", "reward"))
         for i in range(t_idx.shape[0]):
             self.episodes += 1
             success = bool(term[i]) and float(rew[i]) > 0
@@ -462,10 +466,11 @@ class Trainer:
         """``[B, T]`` -> ``[B*T/L, L]`` whole sequences for the sequence replay buffer."""
         L = self.cfg.ppo.sequence_length
         data = data.exclude(*_DROP_KEYS)
-        B, T = data.batch_size[0], data.batch_size[-1]
-        if data.ndim != 2 or T % L:
-            raise RuntimeError(f"collected batch has shape {tuple(data.batch_size)}; expected [envs, T] with T % {L} == 0")
-        return data.reshape(B, T // L, L).reshape(-1, L)
+        T = data.batch_size[-1]
+        if data.ndim < 2 or T % L:
+            raise RuntimeError(f"collected batch has shape {tuple(data.batch_size)}; expected [..., envs, T] with T % {L} == 0")
+        # multi-process collection stacks workers in front: [workers, envs, T]
+        return data.reshape(-1, T).reshape(-1, T // L, L).reshape(-1, L)
 
     # -- optimisation ---------------------------------------------------------------------------------------
     def _update(self, data: TensorDictBase) -> dict[str, float]:
@@ -502,12 +507,17 @@ class Trainer:
                     **{k: v for k, v in aux_td.items()},
                 }
                 for k, v in logs.items():
-                    sums[k] = sums.get(k, 0.0) + float(v)
+                    sums[k] = sums.get(k, 0.0) + float(v.detach() if torch.is_tensor(v) else v)
                 count += 1
         return {k: v / count for k, v in sums.items()}
 
-    def _nan_fallbacks(self) -> int:
-        return int(sum(int(getattr(m, "nan_fallbacks", 0)) for m in self.modules.trunk.modules()))
+    def _fallback_counts(self) -> dict[str, int]:
+        """Numerical fallbacks counted by the layers: slot-attention NaN guards and DNC memory clamps."""
+        mods = list(self.modules.trunk.modules())
+        return {
+            "nan_fallbacks": int(sum(int(getattr(m, "nan_fallbacks", 0)) for m in mods)),
+            "dnc_clip_events": int(sum(int(getattr(m, "clip_events", 0)) for m in mods)),
+        }
 
     # -- main -----------------------------------------------------------------------------------------------
     def train(self) -> dict[str, Any]:
@@ -547,7 +557,7 @@ class Trainer:
                     "fps": data.numel() / max(now - t_batch, 1e-9),
                     **losses,
                     **{f"gate_{m}": g for m, g in self.modules.gates().items()},
-                    "nan_fallbacks": self._nan_fallbacks(),
+                    **self._fallback_counts(),
                 }
                 t_batch = now
                 self.rows.append(row)
@@ -611,7 +621,7 @@ class Trainer:
             "wall_time_s": self.wall_time,
             "fps": self.frames / self.wall_time if self.wall_time > 0 else None,
             "gates": self.modules.gates(),
-            "nan_fallbacks": self._nan_fallbacks(),
+            **self._fallback_counts(),
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         if self.rows:

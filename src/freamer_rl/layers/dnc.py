@@ -1,0 +1,371 @@
+"""Layer 4: content-addressed DNC memory (paper Section 3.5, Appendix F.1) and its TorchRL stateful wrapper.
+
+Maths (content-based addressing only -- no usage/allocation/temporal links; one write head, one read head):
+
+    interface(x) -> k_w [W], beta_w = 1 + softplus(.), e = sigmoid(.) [W], a = tanh(.) [W], g = sigmoid(.) scalar,
+                    k_r [W], beta_r = 1 + softplus(.)
+    w(i)  = softmax_i(beta * cos(k, M[i]))                          (content weights, Appendix F.1)
+    M'    = M * (1 - g w_w e^T) + g w_w a^T                          (erase + write, Appendix F.1; then clamped,
+                                                                      see "Numerical safety")
+    r     = sum_i w_r(i) M'[i]                                       (read from the *written* memory)
+    e_aug = GELU(W_out [x; r] + b)                                   (Appendix F.1, input to the policy head Eq. 5)
+
+Numerical safety:
+``cos`` divides by ``sqrt(||v||^2 + eps^2)`` (eps = 1e-6), which is finite with finite gradients even for an all-zero
+memory (that gives uniform weights). The write vector is ``a = tanh(.)`` in ``[-1, 1]``, but the erase/write update is
+*not* a convex combination (``(1 - g w e) + g w`` can exceed 1 when ``e < 1``), so repeated writes to one slot without
+erasing grow it by up to ``g w(i)`` per step. The new memory is therefore clamped to ``[-memory_clip, memory_clip]``
+(default 10, far above the ``|M| <= 1`` range of a few writes). Each clamped entry is counted in ``clip_events`` and
+logged (rate-limited ``logger.warning``); counting is skipped inside ``torch.func`` transforms / ``torch.compile``
+(the clamp still applies). Non-finite *inputs* still propagate (they are a bug upstream, not a memory failure).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDictBase, unravel_key
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["DNCMemory", "DNCModule"]
+
+_EPS = 1e-6
+
+
+def _is_transformed(t: torch.Tensor) -> bool:
+    """True inside torch.func transforms (vmap/grad) or torch.compile, where Python-side counting is impossible."""
+    if torch.compiler.is_compiling():
+        return True
+    return bool(torch._C._functorch.is_functorch_wrapped_tensor(t))
+
+
+def _safe_norm(v: torch.Tensor) -> torch.Tensor:
+    """``sqrt(||v||^2 + eps^2)`` over the last dim: >= eps, smooth at 0."""
+    return torch.sqrt(v.pow(2).sum(-1) + _EPS**2)
+
+
+class DNCMemory(nn.Module):
+    """Content-addressed DNC memory step (Appendix F.1). Plain ``nn.Module``; state is passed explicitly.
+
+    Args:
+        input_dim: size ``D_in`` of the input ``x`` (the fused representation ``e_fused``).
+        memory_slots: ``N`` (Table A20: 32).
+        memory_width: ``W`` (Table A20: 64).
+        output_dim: size ``D_out`` of ``e_aug`` (default ``input_dim``).
+        memory_clip: bound on ``|M'|`` entries (``None`` disables the clamp). Clamped entries are counted in
+            :attr:`clip_events` and logged.
+
+    Shapes:
+        step / forward: ``x [*B, D_in]``, ``memory [*B, N, W]`` -> ``(e_aug [*B, D_out], new_memory [*B, N, W])``.
+    """
+
+    def __init__(
+        self,
+        input_dim: int,
+        memory_slots: int = 32,
+        memory_width: int = 64,
+        output_dim: int | None = None,
+        *,
+        memory_clip: float | None = 10.0,
+    ) -> None:
+        super().__init__()
+        if min(input_dim, memory_slots, memory_width) < 1:
+            raise ValueError(
+                f"input_dim, memory_slots and memory_width must be positive; got {input_dim}, {memory_slots}, "
+                f"{memory_width}"
+            )
+        self.input_dim = input_dim
+        self.memory_slots = memory_slots
+        self.memory_width = memory_width
+        self.output_dim = input_dim if output_dim is None else output_dim
+        w = memory_width
+        # [k_w (W), beta_w (1), erase (W), write vector (W), gate (1), k_r (W), beta_r (1)]
+        self._split = (w, 1, w, w, 1, w, 1)
+        self.interface = nn.Linear(input_dim, sum(self._split))
+        self.out = nn.Linear(input_dim + w, self.output_dim)
+        if memory_clip is not None and not memory_clip > 0:
+            raise ValueError(f"memory_clip must be positive or None; got {memory_clip}")
+        self.memory_clip = memory_clip
+        self.clip_events = 0  # number of memory entries clamped so far (numerical fallback, see module docstring)
+        self._clip_warnings = 0
+
+    @property
+    def memory_shape(self) -> tuple[int, int]:
+        """``(N, W)``."""
+        return (self.memory_slots, self.memory_width)
+
+    @staticmethod
+    def content_weights(key: torch.Tensor, memory: torch.Tensor, beta: torch.Tensor) -> torch.Tensor:
+        """Content addressing ``w(i) = softmax_i(beta * cos(key, memory[i]))`` (Appendix F.1).
+
+        Args:
+            key: ``[*B, W]``.
+            memory: ``[*B, N, W]``.
+            beta: strength ``[*B]`` (or broadcastable, e.g. a float tensor).
+
+        Returns:
+            ``[*B, N]`` (sums to 1 over ``N``).
+        """
+        dot = (memory @ key.unsqueeze(-1)).squeeze(-1)  # [*B, N]
+        cos = dot / (_safe_norm(memory) * _safe_norm(key).unsqueeze(-1))
+        return torch.softmax(torch.as_tensor(beta, dtype=cos.dtype).unsqueeze(-1) * cos, dim=-1)
+
+    @staticmethod
+    def write(
+        memory: torch.Tensor, weights: torch.Tensor, erase: torch.Tensor, add: torch.Tensor, gate: torch.Tensor
+    ) -> torch.Tensor:
+        """Gated erase/write ``M' = M * (1 - g w e^T) + g w a^T`` (Appendix F.1).
+
+        Args:
+            memory: ``[*B, N, W]``; weights: ``[*B, N]``; erase: ``[*B, W]`` in ``[0, 1]``; add: ``[*B, W]``;
+            gate: ``[*B]`` in ``[0, 1]``.
+
+        Returns:
+            ``[*B, N, W]``.
+        """
+        gw = (gate.unsqueeze(-1) * weights).unsqueeze(-1)  # [*B, N, 1]
+        return memory * (1.0 - gw * erase.unsqueeze(-2)) + gw * add.unsqueeze(-2)
+
+    @staticmethod
+    def read(memory: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+        """Read ``r = sum_i w(i) M[i]``: ``memory [*B, N, W]``, ``weights [*B, N]`` -> ``[*B, W]``."""
+        return (weights.unsqueeze(-2) @ memory).squeeze(-2)
+
+    def interface_vectors(self, x: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Split the interface projection of ``x [*B, D_in]`` into the activated DNC controls.
+
+        Returns a dict with ``write_key [*B, W]``, ``write_strength [*B]`` (>= 1), ``erase [*B, W]`` (0..1),
+        ``write_vector [*B, W]`` (-1..1), ``write_gate [*B]`` (0..1), ``read_key [*B, W]``, ``read_strength [*B]``.
+        """
+        k_w, b_w, e, a, g, k_r, b_r = self.interface(x).split(self._split, dim=-1)
+        return {
+            "write_key": k_w,
+            "write_strength": 1.0 + F.softplus(b_w.squeeze(-1)),
+            "erase": torch.sigmoid(e),
+            "write_vector": torch.tanh(a),
+            "write_gate": torch.sigmoid(g.squeeze(-1)),
+            "read_key": k_r,
+            "read_strength": 1.0 + F.softplus(b_r.squeeze(-1)),
+        }
+
+    def step(self, x: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One write-then-read step.
+
+        ``x [*B, D_in]``, ``memory [*B, N, W]`` -> ``(e_aug [*B, D_out], M' [*B, N, W])``.
+        """
+        if x.shape[-1] != self.input_dim:
+            raise ValueError(f"DNC input must have last dim input_dim={self.input_dim}; got shape {tuple(x.shape)}")
+        if memory.ndim < 2 or tuple(memory.shape[-2:]) != self.memory_shape:
+            raise ValueError(
+                f"DNC memory must have shape [*B, N={self.memory_slots}, W={self.memory_width}]; "
+                f"got {tuple(memory.shape)}"
+            )
+        if memory.shape[:-2] != x.shape[:-1]:
+            raise ValueError(
+                f"DNC input batch dims {tuple(x.shape[:-1])} and memory batch dims {tuple(memory.shape[:-2])} differ"
+            )
+        r, new_memory = self.memory_step(self.interface_vectors(x), memory)
+        return self.output(x, r), new_memory
+
+    def memory_step(self, controls: dict[str, torch.Tensor], memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The memory-dependent part of a step: write then read (Appendix F.1).
+
+        ``controls`` from :meth:`interface_vectors` (``[*B, ...]``), ``memory [*B, N, W]`` ->
+        ``(read vector r [*B, W], M' [*B, N, W])``. Split out so a sequence can project all its interface vectors
+        (and outputs) in one batched matmul and loop over time only here.
+        """
+        c = controls
+        w_w = self.content_weights(c["write_key"], memory, c["write_strength"])
+        new_memory = self._bound(self.write(memory, w_w, c["erase"], c["write_vector"], c["write_gate"]))
+        w_r = self.content_weights(c["read_key"], new_memory, c["read_strength"])
+        return self.read(new_memory, w_r), new_memory
+
+    def output(self, x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        """``e_aug = GELU(W_out [x; r] + b)`` for ``x [*B, D_in]``, ``r [*B, W]`` -> ``[*B, D_out]``."""
+        return F.gelu(self.out(torch.cat([x, r], dim=-1)))
+
+    def _bound(self, memory: torch.Tensor) -> torch.Tensor:
+        """Clamp to ``[-memory_clip, memory_clip]``, counting and logging clamped entries."""
+        clip = self.memory_clip
+        if clip is None:
+            return memory
+        if not _is_transformed(memory):
+            n = int((memory.detach().abs() > clip).sum())
+            if n:
+                self.clip_events += n
+                self._clip_warnings += 1
+                if self._clip_warnings <= 10 or self._clip_warnings % 1000 == 0:
+                    logger.warning(
+                        "DNCMemory: clamped %d memory entries to |M| <= %g (total clamped entries: %d, "
+                        "warning %d; only the first 10 and every 1000th are logged)",
+                        n, clip, self.clip_events, self._clip_warnings,
+                    )
+        return memory.clamp(-clip, clip)
+
+    def forward(self, x: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Alias of :meth:`step`."""
+        return self.step(x, memory)
+
+    def initial_memory(self, batch_shape: tuple[int, ...] = (), **kwargs) -> torch.Tensor:
+        """Zero memory ``[*batch_shape, N, W]`` (``kwargs`` go to ``torch.zeros``: dtype, device)."""
+        return torch.zeros(*batch_shape, *self.memory_shape, **kwargs)
+
+
+def _as_key(key: NestedKey) -> tuple[str, ...]:
+    key = unravel_key(key)
+    return key if isinstance(key, tuple) else (key,)
+
+
+class DNCModule(TensorDictModuleBase):
+    """TensorDict wrapper of :class:`DNCMemory` following TorchRL's ``LSTMModule`` stateful pattern.
+
+    Reads ``in_key [*B, D_in]``, the stored memory ``memory_key [*B, N, W]`` (state *before* the step) and
+    ``is_init_key`` (bool ``[*B, 1]`` as written by ``InitTracker``, or ``[*B]``); writes
+    ``out_key [*B, D_out]`` (``e_aug``) and ``("next", *memory_key) [*B, N, W]`` (state *after* the step), which
+    ``step_mdp`` moves back to the root for the next step.
+
+    Modes (see :func:`torchrl.modules.set_recurrent_mode`; every ``LossModule.forward`` enables it):
+
+    - step mode (default): every leading dim is batch; the memory is zeroed where ``is_init`` is True, then one
+      step is taken.
+    - recurrent mode: the tensordict has batch ``[*B, T]`` (time = last batch dim). Starting from
+      ``memory[..., 0, :, :]`` the module loops over ``T``, zeroing the running memory wherever ``is_init[..., t]``
+      is True, and writes ``out_key`` and ``("next", *memory_key)`` for every ``t``. Gradients flow through time.
+
+    ``make_tensordict_primer()`` declares the memory to the environment (``TransformedEnv(env,
+    Compose(InitTracker(), module.make_tensordict_primer()))``, or ``Collector(...,
+    auto_register_policy_transforms=True)``).
+
+    Args:
+        input_dim, memory_slots, memory_width, output_dim: see :class:`DNCMemory`.
+        in_key: input key (default ``"fused"``).
+        out_key: output key (default ``"hidden"``).
+        memory_key: memory state key (default ``("dnc", "memory")``).
+        is_init_key: episode-start marker (default ``"is_init"``).
+        default_recurrent_mode: mode used when no ``set_recurrent_mode`` context is active (default step mode).
+        memory_clip: see :class:`DNCMemory`.
+    """
+
+    def __init__(
+        self,
+        input_dim: int,
+        memory_slots: int = 32,
+        memory_width: int = 64,
+        output_dim: int | None = None,
+        *,
+        in_key: NestedKey = "fused",
+        out_key: NestedKey = "hidden",
+        memory_key: NestedKey = ("dnc", "memory"),
+        is_init_key: NestedKey = "is_init",
+        default_recurrent_mode: bool | None = None,
+        memory_clip: float | None = 10.0,
+    ) -> None:
+        super().__init__()
+        self.dnc = DNCMemory(input_dim, memory_slots, memory_width, output_dim, memory_clip=memory_clip)
+        self.in_key = unravel_key(in_key)
+        self.out_key = unravel_key(out_key)
+        self.memory_key = unravel_key(memory_key)
+        self.is_init_key = unravel_key(is_init_key)
+        self.next_memory_key = ("next", *_as_key(self.memory_key))
+        self.in_keys = [self.in_key, self.memory_key, self.is_init_key]
+        self.out_keys = [self.out_key, self.next_memory_key]
+        self._recurrent_mode = default_recurrent_mode
+
+    @property
+    def recurrent_mode(self) -> bool:
+        """``torchrl.modules.recurrent_mode()`` if a context set it, else ``default_recurrent_mode``."""
+        from torchrl.modules import recurrent_mode
+
+        rm = recurrent_mode()
+        if rm is None:
+            return bool(self._recurrent_mode)
+        return bool(rm)
+
+    def make_tensordict_primer(self):
+        """A ``TensorDictPrimer`` declaring ``memory_key`` as ``Unbounded([N, W])`` float32 (zeros at reset).
+
+        ``expand_specs=True`` lets the primer follow the env's batch size (as ``LSTMModule`` does).
+        """
+        from torchrl.data import Unbounded
+        from torchrl.envs.transforms import TensorDictPrimer
+
+        return TensorDictPrimer(
+            {self.memory_key: Unbounded(shape=self.dnc.memory_shape, dtype=torch.float32)},
+            expand_specs=True,
+        )
+
+    def _get_inputs(self, tensordict: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        keys = tensordict.keys(include_nested=True)
+        if self.in_key not in keys:
+            raise KeyError(f"DNCModule: input key {self.in_key!r} is missing from the tensordict")
+        if self.memory_key not in keys:
+            raise KeyError(
+                f"DNCModule: memory key {self.memory_key!r} is missing from the tensordict. The environment must "
+                "declare the DNC state: append `module.make_tensordict_primer()` to the env (e.g. "
+                "TransformedEnv(env, Compose(InitTracker(), module.make_tensordict_primer()))), or build the "
+                "collector with `Collector(..., auto_register_policy_transforms=True)`, which adds it."
+            )
+        if self.is_init_key not in keys:
+            raise KeyError(
+                f"DNCModule: episode-start key {self.is_init_key!r} is missing from the tensordict; add "
+                "torchrl.envs.InitTracker() to the environment so memory is reset at episode boundaries."
+            )
+        x = tensordict.get(self.in_key)
+        memory = tensordict.get(self.memory_key)
+        is_init = tensordict.get(self.is_init_key)
+        lead = x.shape[:-1]
+        if is_init.shape == (*lead, 1):
+            is_init = is_init.squeeze(-1)
+        if is_init.shape != lead:
+            raise ValueError(
+                f"DNCModule: {self.is_init_key!r} must have shape [*B, 1] or [*B] with *B={tuple(lead)} (the batch "
+                f"dims of {self.in_key!r} {tuple(x.shape)}); got {tuple(is_init.shape)}"
+            )
+        if tuple(memory.shape) != (*lead, *self.dnc.memory_shape):
+            raise ValueError(
+                f"DNCModule: {self.memory_key!r} must have shape {(*lead, *self.dnc.memory_shape)}; "
+                f"got {tuple(memory.shape)}"
+            )
+        return x, memory, is_init.to(torch.bool)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Run one step (step mode) or a ``[*B, T]`` sequence (recurrent mode); writes ``out_key`` and
+        ``("next", *memory_key)`` into ``tensordict`` and returns it."""
+        x, memory, is_init = self._get_inputs(tensordict)
+        if not self.recurrent_mode:
+            memory = torch.where(is_init[..., None, None], torch.zeros_like(memory), memory)
+            out, new_memory = self.dnc.step(x, memory)
+        else:
+            tdim = tensordict.batch_dims - 1
+            if tdim < 0:
+                raise ValueError(
+                    "DNCModule in recurrent mode needs a tensordict with at least one batch dim (time, last); got a "
+                    "0-d tensordict"
+                )
+            if x.shape[:-1] != tensordict.batch_size:
+                raise ValueError(
+                    f"DNCModule in recurrent mode expects {self.in_key!r} of shape [*B, T, D_in] with [*B, T] the "
+                    f"tensordict batch size {tuple(tensordict.batch_size)}; got {tuple(x.shape)}"
+                )
+            m = memory.select(tdim, 0)
+            # Interface vectors and outputs do not depend on the memory: compute them for all T at once and
+            # loop over time only for addressing, write and read.
+            controls = self.dnc.interface_vectors(x)
+            reads, mems = [], []
+            for t in range(x.shape[tdim]):
+                reset = is_init.select(tdim, t)[..., None, None]
+                m = torch.where(reset, torch.zeros_like(m), m)
+                r, m = self.dnc.memory_step({k: v.select(tdim, t) for k, v in controls.items()}, m)
+                reads.append(r)
+                mems.append(m)
+            out = self.dnc.output(x, torch.stack(reads, dim=tdim))
+            new_memory = torch.stack(mems, dim=tdim)
+        tensordict.set(self.out_key, out)
+        tensordict.set(self.next_memory_key, new_memory)
+        return tensordict

@@ -1,0 +1,53 @@
+"""RSSM world model, imagination env + policy optimisation, and KL anomaly detection (paper Appendix J).
+
+* :mod:`.rssm` -- :class:`RSSM` (Eqs. A23-A25), :class:`WorldModel` (loss Eq. A27), :func:`train_world_model`.
+* :mod:`.imagination` -- :class:`RSSMWorldModelEnv` (a TorchRL ``ModelBasedEnvBase``), :class:`ImaginationPPO`.
+* :mod:`.anomaly` -- :class:`KLAnomalyDetector`, :class:`KLAnomalyTransform`, :func:`plot_anomaly_timeline` (J.5).
+* :mod:`.bench_imagination` -- imagined steps/s vs TorchRL's ``DreamerEnv`` (``python -m`` it; not imported here).
+"""
+
+from freamer_rl.world_model.anomaly import (
+    DEFAULT_ACTION_NAMES,
+    DEFAULT_HR_ZONES,
+    KLAnomalyDetector,
+    KLAnomalyTransform,
+    detect_anomalies,
+    plot_anomaly_timeline,
+)
+from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv, valid_imagination_mask
+from freamer_rl.world_model.rssm import (
+    RSSM,
+    MLPObsDecoder,
+    MLPObsEncoder,
+    WorldModel,
+    action_to_onehot,
+    as_sequences,
+    free_nats_kl,
+    gaussian_kl,
+    symexp,
+    symlog,
+    train_world_model,
+)
+
+__all__ = [
+    "RSSM",
+    "WorldModel",
+    "MLPObsEncoder",
+    "MLPObsDecoder",
+    "gaussian_kl",
+    "free_nats_kl",
+    "symlog",
+    "symexp",
+    "action_to_onehot",
+    "as_sequences",
+    "train_world_model",
+    "RSSMWorldModelEnv",
+    "ImaginationPPO",
+    "valid_imagination_mask",
+    "KLAnomalyDetector",
+    "KLAnomalyTransform",
+    "detect_anomalies",
+    "plot_anomaly_timeline",
+    "DEFAULT_HR_ZONES",
+    "DEFAULT_ACTION_NAMES",
+]

@@ -1,0 +1,653 @@
+"""RSSM world model of the health domain (paper Appendix J.1 and J.3).
+
+Plain ``nn.Module``s on tensors. Every method accepts arbitrary leading batch dims ``[*B, ...]``.
+
+Latent state ``s_t = [h_t; z_t]`` with a deterministic GRU state ``h_t`` (``deter_dim``, 256 in Table A20) and a
+diagonal-Gaussian stochastic state ``z_t`` (``stoch_dim``, 64):
+
+* transition (Eq. A23): ``h_{t+1} = GRU(h_t, [z_t; e(a_t)])``
+* prior (Eq. A24): ``p(z_t | h_t) = N(mu(h_t), sigma(h_t))``
+* posterior (Eq. A25): ``q(z_t | h_t, o_t) = N(mu(h_t, e_t), sigma(h_t, e_t))`` with ``e_t`` the encoder output
+* loss (Eq. A27): ``L_rec + beta * max(KL(q || p), free_nats) + L_rew + L_con``
+
+Time convention (DreamerV3's): element ``t`` of a sequence holds the observation ``o_t`` and the action that *led*
+to it (``a_{t-1}``). :meth:`WorldModel.loss` builds such a sequence of length ``T + 1`` from a TorchRL ``[*B, T]``
+slice (root observation of step 0 followed by every ``("next", obs)``), so the reward head at latent ``s_{t+1}``
+predicts ``("next", "reward")[t]`` and the continuation head learns from the terminal observations too -- the same
+convention as :class:`~freamer_rl.world_model.imagination.RSSMWorldModelEnv`, whose step maps ``(s_t, a_t)`` to
+``s_{t+1}`` and reads reward/continuation off ``s_{t+1}``.
+
+Training from a replay buffer (what the training loop does)::
+
+    rb = ReplayBuffer(storage=LazyTensorStorage(N), sampler=SliceSampler(slice_len=T, traj_key=("collector",
+                      "traj_ids")), batch_size=num_slices * T)
+    rb.extend(collected_data.reshape(-1))
+    batch = as_sequences(rb.sample(), seq_len=T)          # [num_slices, T]
+    losses = world_model.loss(batch)                       # dict: loss_rec, loss_kl, loss_rew, loss_con, total
+    losses["total"].backward()
+
+or simply ``train_world_model(world_model, rb, optimizer, steps)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from tensordict import TensorDict, TensorDictBase
+from tensordict.nn import TensorDictModuleBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "RSSM",
+    "WorldModel",
+    "MLPObsEncoder",
+    "MLPObsDecoder",
+    "gaussian_kl",
+    "free_nats_kl",
+    "symlog",
+    "symexp",
+    "action_to_onehot",
+    "as_sequences",
+    "train_world_model",
+]
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# helpers
+# ----------------------------------------------------------------------------------------------------------------------
+def symlog(x: torch.Tensor) -> torch.Tensor:
+    """``sign(x) * log(1 + |x|)`` (DreamerV3): squashes raw sensor scales (m/s^2, bpm) for the MLPs."""
+    return torch.sign(x) * torch.log1p(x.abs())
+
+
+def symexp(x: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`symlog`."""
+    return torch.sign(x) * torch.expm1(x.abs())
+
+
+def mlp(in_dim: int, hidden: int, out_dim: int, layers: int = 2) -> nn.Sequential:
+    """``layers`` x (Linear -> LayerNorm -> SiLU) then a Linear to ``out_dim``. ``[*B, in_dim] -> [*B, out_dim]``."""
+    mods: list[nn.Module] = []
+    d = in_dim
+    for _ in range(layers):
+        mods += [nn.Linear(d, hidden), nn.LayerNorm(hidden), nn.SiLU()]
+        d = hidden
+    mods.append(nn.Linear(d, out_dim))
+    return nn.Sequential(*mods)
+
+
+def _check_last_dim(name: str, x: torch.Tensor, expected: int) -> None:
+    if x.shape[-1] != expected:
+        raise ValueError(f"{name}: expected last dim {expected}, got shape {tuple(x.shape)}")
+
+
+def gaussian_kl(
+    mean_q: torch.Tensor, std_q: torch.Tensor, mean_p: torch.Tensor, std_p: torch.Tensor
+) -> torch.Tensor:
+    """Closed-form ``KL(N(mean_q, std_q) || N(mean_p, std_p))`` of diagonal Gaussians, summed over the last dim.
+
+    Shapes ``[*B, S]`` -> ``[*B]``. Per dim: ``log(sp/sq) + (sq^2 + (mq - mp)^2) / (2 sp^2) - 1/2``.
+    """
+    var_ratio = (std_q / std_p).pow(2)
+    mahal = ((mean_q - mean_p) / std_p).pow(2)
+    return 0.5 * (var_ratio + mahal - 1.0 - torch.log(var_ratio)).sum(-1)
+
+
+def free_nats_kl(kl_per_step: torch.Tensor, free_nats: float = 1.0, mask: torch.Tensor | None = None) -> torch.Tensor:
+    """``mean(max(KL_t, free_nats))``: the per-step KL (already summed over latent dims) is clamped at
+    ``free_nats`` *before* averaging over batch and time (Eq. A27 with Table A20's free nats 1.0).
+
+    ``kl_per_step``: ``[*B]``; ``mask`` (optional bool ``[*B]``) selects the steps that count.
+    """
+    clamped = kl_per_step.clamp(min=free_nats)
+    if mask is None:
+        return clamped.mean()
+    return clamped[mask].mean()
+
+
+def _flat(x: torch.Tensor, n_trailing: int = 1) -> tuple[torch.Tensor, torch.Size]:
+    lead = x.shape[: x.ndim - n_trailing]
+    return x.reshape(-1, *x.shape[x.ndim - n_trailing :]), lead
+
+
+def action_to_onehot(action: torch.Tensor, action_dim: int, batch_ndim: int) -> torch.Tensor:
+    """Integer actions ``[*B]`` or ``[*B, 1]`` -> float one-hot ``[*B, action_dim]``; float actions ``[*B, A]``
+    (one-hot or continuous vectors) pass through after a shape check."""
+    if action.dtype.is_floating_point:
+        if action.ndim != batch_ndim + 1 or action.shape[-1] != action_dim:
+            raise ValueError(
+                f"action: expected a float tensor of shape [*B, {action_dim}] with {batch_ndim} batch dims, "
+                f"got {tuple(action.shape)}"
+            )
+        return action
+    if action.ndim == batch_ndim + 1 and action.shape[-1] == 1:
+        action = action.squeeze(-1)
+    if action.ndim != batch_ndim:
+        raise ValueError(
+            f"action: expected integer indices of shape [*B] or [*B, 1] with {batch_ndim} batch dims, "
+            f"got {tuple(action.shape)}"
+        )
+    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= action_dim):
+        raise ValueError(f"action: indices must lie in [0, {action_dim}), got range "
+                         f"[{int(action.min())}, {int(action.max())}]")
+    return F.one_hot(action.long(), action_dim).float()
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# RSSM core
+# ----------------------------------------------------------------------------------------------------------------------
+class RSSM(nn.Module):
+    """Recurrent state-space model with a Gaussian stochastic state (Eqs. A23-A25).
+
+    Args:
+        obs_embed_dim: size ``E`` of the encoder output ``o_t^embed``.
+        action_dim: size ``A`` of the (one-hot) action vector.
+        deter_dim: GRU state size (256, Table A20).
+        stoch_dim: Gaussian latent size (64, Table A20).
+        hidden: width of the GRU input projection of ``[z; e(a)]`` and of the prior/posterior MLPs.
+        min_std: lower bound of the prior/posterior std (``softplus(x) + min_std``).
+    """
+
+    def __init__(
+        self,
+        obs_embed_dim: int,
+        action_dim: int,
+        deter_dim: int = 256,
+        stoch_dim: int = 64,
+        hidden: int = 256,
+        min_std: float = 0.1,
+    ) -> None:
+        super().__init__()
+        self.obs_embed_dim = obs_embed_dim
+        self.action_dim = action_dim
+        self.deter_dim = deter_dim
+        self.stoch_dim = stoch_dim
+        self.min_std = min_std
+        # [z_t; e(a_t)] -> GRU input. The action embedding e(a) = W_a a is linear in the one-hot action (an embedding
+        # lookup), so it is folded into this first layer: Linear([z; a]) = W_z z + W_a a + b.
+        self.gru_in = nn.Sequential(nn.Linear(stoch_dim + action_dim, hidden), nn.LayerNorm(hidden), nn.SiLU())
+        self.gru = nn.GRUCell(hidden, deter_dim)
+        self.prior_net = mlp(deter_dim, hidden, 2 * stoch_dim, layers=1)
+        self.post_net = mlp(deter_dim + obs_embed_dim, hidden, 2 * stoch_dim, layers=1)
+
+    # -- pieces ---------------------------------------------------------------------------------------------------
+    def initial_state(
+        self, batch_shape: Sequence[int] = (), device: torch.device | None = None, dtype: torch.dtype | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Zero ``(h, z)`` of shapes ``[*batch_shape, deter_dim]`` and ``[*batch_shape, stoch_dim]``."""
+        h = torch.zeros(*batch_shape, self.deter_dim, device=device, dtype=dtype)
+        z = torch.zeros(*batch_shape, self.stoch_dim, device=device, dtype=dtype)
+        return h, z
+
+    def _params(self, out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mean, pre_std = out.chunk(2, dim=-1)
+        return mean, F.softplus(pre_std) + self.min_std
+
+    def transition(self, h: torch.Tensor, z: torch.Tensor, action: torch.Tensor) -> torch.Tensor:
+        """Eq. A23: ``[*B, D], [*B, S], [*B, A] -> h' [*B, D]``."""
+        _check_last_dim("h", h, self.deter_dim)
+        _check_last_dim("z", z, self.stoch_dim)
+        _check_last_dim("action (one-hot)", action, self.action_dim)
+        hf, lead = _flat(h)
+        x = torch.cat([z.reshape(hf.shape[0], -1), action.reshape(hf.shape[0], -1).to(z.dtype)], dim=-1)
+        return self.gru(self.gru_in(x), hf).reshape(*lead, self.deter_dim)
+
+    def prior(self, h: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Eq. A24: ``h [*B, D] -> (mean, std)`` each ``[*B, S]``."""
+        return self._params(self.prior_net(h))
+
+    def posterior(self, h: torch.Tensor, embed: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Eq. A25: ``h [*B, D], embed [*B, E] -> (mean, std)`` each ``[*B, S]``."""
+        _check_last_dim("embed", embed, self.obs_embed_dim)
+        return self._params(self.post_net(torch.cat([h, embed], dim=-1)))
+
+    @staticmethod
+    def sample(mean: torch.Tensor, std: torch.Tensor, sample: bool = True) -> torch.Tensor:
+        """Reparameterised sample (or the mean when ``sample=False``)."""
+        return mean + std * torch.randn_like(std) if sample else mean
+
+    # -- steps ----------------------------------------------------------------------------------------------------
+    def imagine_step(
+        self, h: torch.Tensor, z: torch.Tensor, action: torch.Tensor, sample: bool = True
+    ) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """Prior-only step (Eq. A28): ``(h_t, z_t, a_t) -> (h_{t+1}, (prior mean, prior std), z_{t+1} ~ prior)``.
+
+        Shapes: ``h [*B, D]``, ``z [*B, S]``, ``action [*B, A]`` (one-hot float).
+        """
+        h_next = self.transition(h, z, action)
+        mean, std = self.prior(h_next)
+        return h_next, (mean, std), self.sample(mean, std, sample)
+
+    def obs_step(
+        self,
+        h: torch.Tensor,
+        z: torch.Tensor,
+        action: torch.Tensor,
+        embed: torch.Tensor,
+        is_first: torch.Tensor | None = None,
+        sample: bool = True,
+    ) -> dict[str, torch.Tensor]:
+        """One filtering step: transition from the previous latent with the action that led to ``o_t``, then the
+        prior and the posterior given ``embed = e(o_t)``. Where ``is_first`` (bool ``[*B]``) is True, the previous
+        latent and the action are zeroed first (a fresh episode: ``h_t`` is then a learned function of nothing).
+
+        Returns a dict of ``[*B, *]`` tensors: ``h``, ``z`` (posterior sample), ``prior_mean``, ``prior_std``,
+        ``post_mean``, ``post_std``.
+        """
+        if is_first is not None:
+            keep = (~is_first.bool()).unsqueeze(-1).to(h.dtype)
+            h, z, action = h * keep, z * keep, action * keep
+        h = self.transition(h, z, action)
+        prior_mean, prior_std = self.prior(h)
+        post_mean, post_std = self.posterior(h, embed)
+        z = self.sample(post_mean, post_std, sample)
+        return {
+            "h": h,
+            "z": z,
+            "prior_mean": prior_mean,
+            "prior_std": prior_std,
+            "post_mean": post_mean,
+            "post_std": post_std,
+        }
+
+    def observe(
+        self,
+        embeds: torch.Tensor,
+        actions: torch.Tensor,
+        is_first: torch.Tensor,
+        h0: torch.Tensor | None = None,
+        z0: torch.Tensor | None = None,
+        sample: bool = True,
+    ) -> dict[str, torch.Tensor]:
+        """Filter a sequence (posterior rollout).
+
+        Args:
+            embeds: ``[*B, T, E]`` encoder outputs ``e(o_t)``.
+            actions: ``[*B, T, A]`` one-hot; ``actions[..., t, :]`` is the action that led to ``o_t``
+                (ignored where ``is_first``).
+            is_first: bool ``[*B, T]``; the state is reset (previous latent and action zeroed) where True.
+            h0, z0: ``[*B, D]``, ``[*B, S]`` latent preceding ``embeds[..., 0, :]`` (zeros when omitted).
+            sample: reparameterised posterior samples (True) or posterior means (False) are fed forward.
+
+        Returns:
+            dict of ``[*B, T, *]`` tensors: ``h``, ``z``, ``prior_mean``, ``prior_std``, ``post_mean``, ``post_std``.
+        """
+        if embeds.ndim < 2:
+            raise ValueError(f"embeds: expected [*B, T, E], got {tuple(embeds.shape)}")
+        lead = embeds.shape[:-2]
+        T = embeds.shape[-2]
+        if actions.shape[:-1] != embeds.shape[:-1]:
+            raise ValueError(f"actions: expected leading shape {tuple(embeds.shape[:-1])}, got {tuple(actions.shape)}")
+        if is_first.shape != embeds.shape[:-1]:
+            raise ValueError(f"is_first: expected shape {tuple(embeds.shape[:-1])}, got {tuple(is_first.shape)}")
+        e = embeds.reshape(-1, T, embeds.shape[-1])
+        a = actions.reshape(-1, T, actions.shape[-1])
+        first = is_first.reshape(-1, T).bool()
+        n = e.shape[0]
+        h, z = self.initial_state((n,), device=e.device, dtype=e.dtype)
+        if h0 is not None:
+            h = h0.reshape(n, self.deter_dim)
+        if z0 is not None:
+            z = z0.reshape(n, self.stoch_dim)
+        outs: dict[str, list[torch.Tensor]] = {}
+        for t in range(T):
+            step = self.obs_step(h, z, a[:, t], e[:, t], first[:, t], sample=sample)
+            h, z = step["h"], step["z"]
+            for k, v in step.items():
+                outs.setdefault(k, []).append(v)
+        return {k: torch.stack(v, dim=1).reshape(*lead, T, -1) for k, v in outs.items()}
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# encoder / decoder
+# ----------------------------------------------------------------------------------------------------------------------
+class MLPObsEncoder(nn.Module):
+    """Default observation encoder: concatenation of the observation keys -> MLP -> ``[*B, out_dim]``.
+
+    Args:
+        obs_dims: ``{key: feature size}``; the keys are read (in this order) from the observation mapping.
+        out_dim: embedding size ``E``.
+        hidden, layers: MLP width and depth.
+        symlog_inputs: apply :func:`symlog` to the inputs (robust to raw m/s^2 and bpm scales).
+
+    Forward: ``obs`` is any mapping (dict or TensorDict) ``key -> [*B, d_key]``; returns ``[*B, out_dim]``.
+    """
+
+    def __init__(
+        self, obs_dims: Mapping[NestedKey, int], out_dim: int, hidden: int = 256, layers: int = 2,
+        symlog_inputs: bool = True,
+    ) -> None:
+        super().__init__()
+        if not obs_dims:
+            raise ValueError("obs_dims: expected at least one observation key, got an empty mapping")
+        self.obs_dims = dict(obs_dims)
+        self.out_dim = out_dim
+        self.symlog_inputs = symlog_inputs
+        self.net = mlp(sum(self.obs_dims.values()), hidden, out_dim, layers)
+
+    def forward(self, obs: Mapping[NestedKey, torch.Tensor]) -> torch.Tensor:
+        parts = []
+        for k, d in self.obs_dims.items():
+            x = obs[k]
+            _check_last_dim(f"observation {k!r}", x, d)
+            parts.append(x.float())
+        x = torch.cat(parts, dim=-1)
+        return self.net(symlog(x) if self.symlog_inputs else x)
+
+
+class MLPObsDecoder(nn.Module):
+    """Default decoder: latent ``[*B, D + S]`` -> ``{key: [*B, d_key]}`` (one MLP, output split per key)."""
+
+    def __init__(self, latent_dim: int, obs_dims: Mapping[NestedKey, int], hidden: int = 256, layers: int = 2):
+        super().__init__()
+        self.obs_dims = dict(obs_dims)
+        self.net = mlp(latent_dim, hidden, sum(self.obs_dims.values()), layers)
+
+    def forward(self, latent: torch.Tensor) -> dict[NestedKey, torch.Tensor]:
+        out = self.net(latent).split(list(self.obs_dims.values()), dim=-1)
+        return dict(zip(self.obs_dims.keys(), out))
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# world model
+# ----------------------------------------------------------------------------------------------------------------------
+class WorldModel(nn.Module):
+    """Encoder + RSSM + decoder + reward and continuation heads, with the loss of Eq. A27.
+
+    Args:
+        obs_dims: ``{observation key: feature size}``, e.g. ``{"imu": 36, "hr_features": 16}``; these keys are
+            encoded and reconstructed.
+        action_dim: number of discrete actions (integer actions are one-hot encoded) or the size of a float action.
+        encoder: any module mapping the observations to ``[*B, embed_dim]``. A plain ``nn.Module`` is called with a
+            ``dict`` ``{key: [*B, T, d]}``; a ``TensorDictModuleBase`` is called with a TensorDict holding the
+            observation keys (plus ``"is_init"`` ``[*B, T, 1]`` in :meth:`loss`, True at the first step of each
+            sequence) and its first out_key is read. Default :class:`MLPObsEncoder`. A stateful encoder (e.g. one
+            with a DNC) must handle ``[*B, T]`` inputs itself (``set_recurrent_mode``) in :meth:`loss`.
+        rssm: default ``RSSM(embed_dim, action_dim, deter_dim, stoch_dim, hidden, min_std)``.
+        decoder: latent ``[*B, D + S]`` -> ``{key: [*B, d_key]}``; default :class:`MLPObsDecoder`.
+        reward_head, continue_head: latent -> ``[*B, 1]`` (reward; continuation Bernoulli logit).
+        beta: KL weight ``beta_d`` (1.0 in J.3; Table A20 lists 0.5).
+        free_nats: per-step KL floor (1.0, Table A20).
+        kl_balance: ``None`` for the paper's plain ``KL(q || p)``; a float ``alpha`` for DreamerV2-style balancing
+            ``alpha KL(sg(q) || p) + (1 - alpha) KL(q || sg(p))``.
+        symlog_targets: reconstruct ``symlog(obs)`` (DreamerV3) instead of the raw observation. The reported
+            ``mse_<key>`` metrics are always in raw observation units.
+        reward_scale, continue_scale: weights of ``L_rew`` and ``L_con``.
+        action_key, reward_key, terminated_key, done_key: TensorDict keys read by :meth:`loss`.
+    """
+
+    def __init__(
+        self,
+        obs_dims: Mapping[NestedKey, int],
+        action_dim: int,
+        *,
+        encoder: nn.Module | None = None,
+        rssm: RSSM | None = None,
+        decoder: nn.Module | None = None,
+        reward_head: nn.Module | None = None,
+        continue_head: nn.Module | None = None,
+        embed_dim: int = 256,
+        deter_dim: int = 256,
+        stoch_dim: int = 64,
+        hidden: int = 256,
+        min_std: float = 0.1,
+        beta: float = 1.0,
+        free_nats: float = 1.0,
+        kl_balance: float | None = None,
+        symlog_targets: bool = True,
+        reward_scale: float = 1.0,
+        continue_scale: float = 1.0,
+        action_key: NestedKey = "action",
+        reward_key: NestedKey = ("next", "reward"),
+        terminated_key: NestedKey = ("next", "terminated"),
+        done_key: NestedKey = ("next", "done"),
+    ) -> None:
+        super().__init__()
+        self.obs_dims = dict(obs_dims)
+        self.action_dim = action_dim
+        self.encoder = encoder if encoder is not None else MLPObsEncoder(self.obs_dims, embed_dim, hidden)
+        self.rssm = rssm if rssm is not None else RSSM(embed_dim, action_dim, deter_dim, stoch_dim, hidden, min_std)
+        if self.rssm.action_dim != action_dim:
+            raise ValueError(f"rssm: action_dim {self.rssm.action_dim} != world model action_dim {action_dim}")
+        self.deter_dim = self.rssm.deter_dim
+        self.stoch_dim = self.rssm.stoch_dim
+        latent = self.latent_dim
+        self.decoder = decoder if decoder is not None else MLPObsDecoder(latent, self.obs_dims, hidden)
+        self.reward_head = reward_head if reward_head is not None else mlp(latent, hidden, 1)
+        self.continue_head = continue_head if continue_head is not None else mlp(latent, hidden, 1)
+        if kl_balance is not None and not 0.0 <= kl_balance <= 1.0:
+            raise ValueError(f"kl_balance: expected None or a float in [0, 1], got {kl_balance}")
+        self.beta = beta
+        self.free_nats = free_nats
+        self.kl_balance = kl_balance
+        self.symlog_targets = symlog_targets
+        self.reward_scale = reward_scale
+        self.continue_scale = continue_scale
+        self.action_key = action_key
+        self.reward_key = reward_key
+        self.terminated_key = terminated_key
+        self.done_key = done_key
+
+    @property
+    def latent_dim(self) -> int:
+        return self.deter_dim + self.stoch_dim
+
+    # -- pieces ---------------------------------------------------------------------------------------------------
+    @staticmethod
+    def features(h: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+        """Latent ``s = [h; z]``: ``[*B, D], [*B, S] -> [*B, D + S]``."""
+        return torch.cat([h, z], dim=-1)
+
+    def action_to_onehot(self, action: torch.Tensor, batch_ndim: int) -> torch.Tensor:
+        """See :func:`action_to_onehot`."""
+        return action_to_onehot(action, self.action_dim, batch_ndim)
+
+    def embed(self, obs: Mapping[NestedKey, torch.Tensor] | TensorDictBase) -> torch.Tensor:
+        """Encode observations ``{key: [*B, d]}`` -> ``[*B, E]`` with the pluggable encoder."""
+        if isinstance(self.encoder, TensorDictModuleBase):
+            if not isinstance(obs, TensorDictBase):
+                raise TypeError("a TensorDictModule encoder needs a TensorDict of observations")
+            out = self.encoder(obs.copy())
+            return out.get(self.encoder.out_keys[0])
+        if isinstance(obs, TensorDictBase):
+            obs = {k: obs.get(k) for k in self.obs_dims}
+        return self.encoder(obs)
+
+    def kl(self, out: Mapping[str, torch.Tensor]) -> torch.Tensor:
+        """Per-step ``KL(q || p)`` summed over latent dims (``[*B, T]``), optionally balanced (see ``kl_balance``)."""
+        q = (out["post_mean"], out["post_std"])
+        p = (out["prior_mean"], out["prior_std"])
+        if self.kl_balance is None:
+            return gaussian_kl(*q, *p)
+        a = self.kl_balance
+        sg_q = tuple(x.detach() for x in q)
+        sg_p = tuple(x.detach() for x in p)
+        return a * gaussian_kl(*sg_q, *p) + (1 - a) * gaussian_kl(*q, *sg_p)
+
+    def sequence(self, batch: TensorDictBase) -> dict[str, torch.Tensor | dict]:
+        """Turn a TorchRL slice ``[*B, T]`` into the ``T + 1`` filtering sequence of the module docstring.
+
+        Returns ``obs`` (``{key: [*B, T+1, d]}``), ``actions`` (one-hot ``[*B, T+1, A]``, zeros at 0),
+        ``is_first`` (``[*B, T+1]``, True at 0 only), ``reward`` and ``cont`` (``[*B, T]``, targets of steps 1..T).
+        Raises ``ValueError`` when the slice crosses an episode boundary (use a ``SliceSampler`` with a
+        ``traj_key``/``end_key``).
+        """
+        if batch.batch_dims < 1:
+            raise ValueError(f"batch: expected a [*B, T] TensorDict (time last), got batch_size {batch.batch_size}")
+        td = batch.ndim - 1  # time dim
+        done = batch.get(self.done_key, None)
+        if done is not None and batch.shape[-1] > 1:
+            d = done.reshape(*batch.shape, -1).any(-1)
+            if d[..., :-1].any():
+                raise ValueError(
+                    f"batch: {self.done_key} is True before the last step of a slice: slices must not cross episode "
+                    "boundaries (sample with SliceSampler(traj_key=..., or end_key=...))"
+                )
+        obs = {}
+        for k in self.obs_dims:
+            first = batch.get(k)
+            nxt = batch.get(("next", *((k,) if isinstance(k, str) else k)))
+            obs[k] = torch.cat([first.narrow(td, 0, 1), nxt], dim=td).float()
+        a = self.action_to_onehot(batch.get(self.action_key), batch.ndim)
+        actions = torch.cat([torch.zeros_like(a.narrow(td, 0, 1)), a], dim=td)
+        is_first = torch.zeros(*batch.shape[:-1], batch.shape[-1] + 1, dtype=torch.bool, device=a.device)
+        is_first[..., 0] = True
+        reward = batch.get(self.reward_key).reshape(*batch.shape).float()
+        terminated = batch.get(self.terminated_key, None)
+        if terminated is None:
+            terminated = torch.zeros(batch.shape, dtype=torch.bool, device=a.device)
+        cont = 1.0 - terminated.reshape(*batch.shape).float()
+        return {"obs": obs, "actions": actions, "is_first": is_first, "reward": reward, "cont": cont}
+
+    def observe(self, batch: TensorDictBase, sample: bool = True) -> tuple[dict[str, torch.Tensor], dict]:
+        """Encode and filter a ``[*B, T]`` slice. Returns (RSSM outputs ``[*B, T+1, *]``, :meth:`sequence`)."""
+        seq = self.sequence(batch)
+        obs = seq["obs"]
+        if isinstance(self.encoder, TensorDictModuleBase):
+            # a TensorDict encoder (e.g. a recurrent one) also sees where the sequence starts: "is_init" [*B, T+1, 1]
+            obs = TensorDict({**obs, "is_init": seq["is_first"].unsqueeze(-1)}, batch_size=seq["is_first"].shape)
+        embeds = self.embed(obs)
+        out = self.rssm.observe(embeds, seq["actions"], seq["is_first"], sample=sample)
+        return out, seq
+
+    # -- loss -----------------------------------------------------------------------------------------------------
+    def loss(
+        self, batch: TensorDictBase, return_latents: bool = False
+    ) -> dict[str, torch.Tensor] | tuple[dict[str, torch.Tensor], TensorDict]:
+        """Eq. A27 on a ``[*B, T]`` TorchRL slice (time = last batch dim).
+
+        Reads the observation keys at the root and under ``"next"``, ``action_key``, ``reward_key``,
+        ``terminated_key`` (and ``done_key`` for the episode-boundary check).
+
+        * ``loss_rec``: per key, squared error summed over features, mean over ``[*B, T+1]``; summed over keys.
+        * ``loss_kl``: ``mean(max(KL_t(q || p), free_nats))`` over ``[*B, T+1]`` (unweighted; ``total`` uses beta).
+        * ``loss_rew``: MSE of the reward head at ``s_{t+1}`` vs ``("next", "reward")[t]``.
+        * ``loss_con``: BCE of the continuation logit at ``s_{t+1}`` vs ``1 - ("next", "terminated")[t]``.
+        * ``total`` = rec + beta kl + reward_scale rew + continue_scale con.
+        Diagnostics (detached): ``kl`` (unclamped mean), ``mse_<key>`` (raw units).
+
+        With ``return_latents=True`` also returns the detached posterior latents ``TensorDict(deter=[N, D],
+        stoch=[N, S])`` flattened over ``[*B, T+1]``: imagination seeds for
+        :class:`~freamer_rl.world_model.imagination.RSSMWorldModelEnv`.
+        """
+        out, seq = self.observe(batch)
+        feat = self.features(out["h"], out["z"])  # [*B, T+1, L]
+        recon = self.decoder(feat)
+        loss_rec = feat.new_zeros(())
+        metrics: dict[str, torch.Tensor] = {}
+        for k, target in seq["obs"].items():
+            pred = recon[k]
+            tgt = symlog(target) if self.symlog_targets else target
+            loss_rec = loss_rec + (pred - tgt).pow(2).sum(-1).mean()
+            raw = symexp(pred) if self.symlog_targets else pred
+            name = k if isinstance(k, str) else "_".join(k)
+            metrics[f"mse_{name}"] = (raw.detach() - target).pow(2).mean()
+        kl_t = self.kl(out)
+        loss_kl = free_nats_kl(kl_t, self.free_nats)
+        nxt = feat[..., 1:, :]
+        loss_rew = F.mse_loss(self.reward_head(nxt).squeeze(-1), seq["reward"])
+        loss_con = F.binary_cross_entropy_with_logits(self.continue_head(nxt).squeeze(-1), seq["cont"])
+        total = loss_rec + self.beta * loss_kl + self.reward_scale * loss_rew + self.continue_scale * loss_con
+        losses = {
+            "loss_rec": loss_rec,
+            "loss_kl": loss_kl,
+            "loss_rew": loss_rew,
+            "loss_con": loss_con,
+            "total": total,
+            "kl": kl_t.detach().mean(),
+            **metrics,
+        }
+        if not return_latents:
+            return losses
+        latents = TensorDict(
+            {
+                "deter": out["h"].detach().reshape(-1, self.deter_dim),
+                "stoch": out["z"].detach().reshape(-1, self.stoch_dim),
+            },
+            batch_size=[out["h"][..., 0].numel()],
+        )
+        return losses, latents
+
+    @torch.no_grad()
+    def episode_kl(self, episode: TensorDictBase) -> torch.Tensor:
+        """Per-step ``KL(q || p)`` along one recorded episode ``[T]`` (or ``[*B, T]``), posterior means fed forward.
+
+        Returns ``[*B, T + 1]``: element 0 is the reset step (observation at the root of step 0), element ``t + 1``
+        the KL after ``("next", obs)[t]`` -- the values :class:`~freamer_rl.world_model.anomaly.KLAnomalyTransform`
+        computes online.
+        """
+        out, _ = self.observe(episode, sample=False)
+        return gaussian_kl(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"])
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# training from a replay buffer
+# ----------------------------------------------------------------------------------------------------------------------
+def as_sequences(batch: TensorDictBase, seq_len: int | None = None, replay_buffer=None) -> TensorDictBase:
+    """Reshape a flat ``[num_slices * T]`` sample of a ``SliceSampler`` to ``[num_slices, T]``.
+
+    ``seq_len`` defaults to the sampler's ``slice_len`` (or ``batch_size // num_slices``). A batch that already
+    has two or more batch dims is returned unchanged.
+    """
+    if batch.batch_dims >= 2:
+        return batch
+    if seq_len is None:
+        sampler = getattr(replay_buffer, "sampler", None) if replay_buffer is not None else None
+        if sampler is None:
+            raise ValueError("as_sequences: pass seq_len or the replay_buffer whose SliceSampler produced the batch")
+        seq_len = getattr(sampler, "slice_len", None)
+        if seq_len is None:
+            num_slices = getattr(sampler, "num_slices", None)
+            if num_slices is None:
+                raise ValueError("as_sequences: the replay buffer's sampler has neither slice_len nor num_slices")
+            seq_len = batch.shape[0] // num_slices
+    if batch.shape[0] % seq_len:
+        raise ValueError(f"as_sequences: batch of {batch.shape[0]} steps is not divisible by seq_len={seq_len}")
+    return batch.reshape(-1, seq_len)
+
+
+def train_world_model(
+    world_model: WorldModel,
+    replay_buffer,
+    optimizer: torch.optim.Optimizer,
+    steps: int,
+    *,
+    seq_len: int | None = None,
+    grad_clip: float | None = 1.0,
+    log_every: int = 0,
+) -> list[dict[str, float]]:
+    """``steps`` gradient steps of Eq. A27 on ``[num_slices, T]`` slices sampled from ``replay_buffer``
+    (a TorchRL ``ReplayBuffer`` with a ``SliceSampler``). Gradient-norm clipping at ``grad_clip`` (1.0, Table A20).
+
+    Returns one dict of float metrics per step (keys of :meth:`WorldModel.loss` plus ``grad_norm``).
+    """
+    history: list[dict[str, float]] = []
+    params = [p for p in world_model.parameters() if p.requires_grad]
+    world_model.train()
+    for i in range(steps):
+        batch = as_sequences(replay_buffer.sample(), seq_len, replay_buffer)
+        losses = world_model.loss(batch)
+        optimizer.zero_grad(set_to_none=True)
+        losses["total"].backward()
+        gn = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip is not None else math.inf)
+        if not torch.isfinite(gn):
+            world_model.skipped_updates = getattr(world_model, "skipped_updates", 0) + 1
+            logger.warning(
+                "train_world_model: non-finite gradient norm at step %d; update skipped (%d so far)",
+                i, world_model.skipped_updates,
+            )
+        else:
+            optimizer.step()
+        rec = {k: float(v.detach()) for k, v in losses.items()}
+        rec["grad_norm"] = float(gn)
+        history.append(rec)
+        if log_every and (i + 1) % log_every == 0:
+            logger.info("world model step %d: %s", i + 1, {k: round(v, 4) for k, v in rec.items()})
+    return history

@@ -1,0 +1,141 @@
+"""KL anomaly detection (Appendix J.5): running statistics, the online TorchRL transform, the Fig. 4 plot."""
+
+import math
+
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.data import Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from freamer_rl.world_model import (
+    KLAnomalyDetector,
+    KLAnomalyTransform,
+    WorldModel,
+    detect_anomalies,
+    plot_anomaly_timeline,
+)
+
+OBS_DIMS = {"imu": 6, "hr_features": 3}
+N_ACT = 3
+
+
+def stationary(T, shape=()):
+    """Bounded periodic signal: std = 0.1/sqrt(2) ~ 0.071, so mean + 2 std ~ 1.141 > max 1.1 -- never flagged."""
+    t = torch.arange(T, dtype=torch.float32)
+    phase = torch.arange(math.prod(shape) or 1, dtype=torch.float32).reshape(*shape, 1) if shape else 0.0
+    return 1.0 + 0.1 * torch.sin(0.7 * t + phase)
+
+
+@pytest.mark.parametrize("momentum", [None, 0.02])
+@pytest.mark.parametrize("shape", [(), (3,)])
+def test_detector_flags_spike_not_stationary(momentum, shape):
+    T, spike_at = 300, 200
+    kl = stationary(T, shape)
+    det = KLAnomalyDetector(k_sigma=2.0, warmup=30, momentum=momentum)
+    flags = torch.stack([det.update(kl[..., t]) for t in range(T)], -1)
+    assert flags.shape == (*shape, T)
+    assert not flags.any()  # stationary: nothing flagged
+    kl_spiked = kl.clone()
+    kl_spiked[..., spike_at] += 1.0
+    det.reset()
+    flags = torch.stack([det.update(kl_spiked[..., t]) for t in range(T)], -1)
+    assert flags[..., spike_at].all()
+    assert flags.sum() == flags[..., spike_at].sum()  # only the spike
+    # the offline helper agrees with the streaming module
+    off, thr = detect_anomalies(kl_spiked, warmup=30, momentum=momentum)
+    assert torch.equal(off, flags)
+    assert torch.isnan(thr[..., :30]).all() and torch.isfinite(thr[..., 30:]).all()
+
+
+def test_detector_warmup_and_welford_stats():
+    det = KLAnomalyDetector(warmup=10)
+    x = torch.tensor([1.0, 2.0, 3.0, 4.0, 100.0])
+    flags = [bool(det.update(v)) for v in x]
+    assert not any(flags)  # a huge value during warm-up is not flagged
+    assert det.mean.item() == pytest.approx(x.mean().item())
+    assert det.std.item() == pytest.approx(x.std().item(), rel=1e-5)
+    with pytest.raises(ValueError, match="kl"):
+        det.update(torch.zeros(2))
+    with pytest.raises(ValueError, match="momentum"):
+        KLAnomalyDetector(momentum=1.5)
+
+
+class ToySensorEnv(EnvBase):
+    """Tiny batched env with the health env's interface shape: obs "imu" [6], "hr_features" [3], Categorical(3)."""
+
+    def __init__(self, batch_size=()):
+        super().__init__(batch_size=torch.Size(batch_size))
+        bs = self.batch_size
+        self.observation_spec = Composite(imu=Unbounded((*bs, 6)), hr_features=Unbounded((*bs, 3)), shape=bs)
+        self.state_spec = Composite(t=Unbounded((*bs, 1)), shape=bs)
+        self.action_spec = Categorical(N_ACT, shape=bs)
+        self.reward_spec = Unbounded((*bs, 1))
+        self.done_spec = Composite(
+            {k: Categorical(2, (*bs, 1), dtype=torch.bool) for k in ("done", "terminated", "truncated")}, shape=bs
+        )
+
+    def _obs(self, t, action=None):
+        bs = self.batch_size
+        a = torch.zeros(*bs, 1) if action is None else action.float().unsqueeze(-1)
+        imu = torch.cat([torch.sin(0.3 * t).expand(*bs, 3), torch.cos(0.3 * t).expand(*bs, 3)], -1) + 0.1 * a
+        hr = torch.cat([torch.sin(0.1 * t), t / 100, a], -1).expand(*bs, 3)
+        return imu, hr
+
+    def _reset(self, td):
+        t = torch.zeros(*self.batch_size, 1)
+        imu, hr = self._obs(t)
+        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
+        return TensorDict({"imu": imu, "hr_features": hr, "t": t, "done": done, "terminated": done.clone(),
+                           "truncated": done.clone()}, self.batch_size)
+
+    def _step(self, td):
+        t = td["t"] + 1
+        imu, hr = self._obs(t, td["action"])
+        done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
+        return TensorDict({"imu": imu, "hr_features": hr, "t": t, "reward": imu[..., :1], "done": done,
+                           "terminated": done.clone(), "truncated": done.clone()}, self.batch_size)
+
+    def _set_seed(self, seed):
+        return seed
+
+
+@pytest.mark.parametrize("batch", [(), (2,)])
+def test_transform_writes_keys_in_rollout(batch):
+    wm = WorldModel(OBS_DIMS, N_ACT, embed_dim=16, deter_dim=24, stoch_dim=8, hidden=32)
+    env = TransformedEnv(ToySensorEnv(batch), KLAnomalyTransform(wm, detector=KLAnomalyDetector(warmup=5)))
+    check_env_specs(env)
+    env.transform.detector.reset()
+    T = 25
+    traj = env.rollout(T)
+    assert traj.batch_size == (*batch, T)
+    assert traj["next", "kl"].shape == (*batch, T, 1) and traj["next", "anomaly"].dtype == torch.bool
+    assert traj["next", "kl_filter", "deter"].shape == (*batch, T, 24)
+    assert (traj["next", "kl"] >= 0).all() and torch.isfinite(traj["next", "kl"]).all()
+    assert not traj["anomaly"][..., 0, :].any()  # reset step never flagged
+    assert not traj["next", "anomaly"][..., :4, :].any()  # warm-up
+    # filtering state is carried: root of step t+1 == next of step t
+    torch.testing.assert_close(traj["kl_filter", "deter"][..., 1:, :], traj["next", "kl_filter", "deter"][..., :-1, :])
+    # the online KL equals the offline KL of the recorded episode (same filter, posterior means)
+    offline = wm.episode_kl(traj)
+    torch.testing.assert_close(offline[..., 0], traj["kl"][..., 0, 0])
+    torch.testing.assert_close(offline[..., 1:], traj["next", "kl"][..., 0], rtol=1e-4, atol=1e-5)
+    # statistics follow every env step
+    assert env.transform.detector.count.shape == batch and (env.transform.detector.count == T).all()
+
+
+def test_plot_anomaly_timeline_png(tmp_path):
+    T = 240
+    t = torch.arange(T, dtype=torch.float32)
+    hr = 90 + 60 * torch.sin(t / 40).clamp(min=0) + 30 * (t > 200).float()
+    actions = (t // 30).long() % 5
+    kl = stationary(T)
+    kl[150] += 2.0
+    flags, thr = detect_anomalies(kl, warmup=20)
+    out = plot_anomaly_timeline(hr, actions, kl, flags, tmp_path / "fig" / "anomaly.png", threshold=thr,
+                                time_hours=t * 48 / T, title="48 h scenario")
+    with open(out, "rb") as f:
+        assert f.read(8) == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="actions"):
+        plot_anomaly_timeline(hr, actions[:-1], kl, flags, tmp_path / "bad.png")

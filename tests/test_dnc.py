@@ -1,0 +1,337 @@
+"""Layer 4 DNC memory (Appendix F.1) and its TorchRL stateful wrapper (LSTMModule pattern)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from tensordict import TensorDict
+from tensordict.nn import TensorDictModule, TensorDictSequential
+from torch import nn
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
+from torchrl.modules import set_recurrent_mode
+
+from freamer_rl.layers.dnc import DNCMemory, DNCModule
+
+BATCH_SHAPES = [(), (2,), (3, 2)]
+N, W, D = 5, 6, 8
+
+
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_memory_step_shapes(batch):
+    dnc = DNCMemory(D, memory_slots=N, memory_width=W, output_dim=3)
+    out, mem = dnc.step(torch.randn(*batch, D), dnc.initial_memory(batch))
+    assert out.shape == (*batch, 3)
+    assert mem.shape == (*batch, N, W)
+    assert DNCMemory(D, N, W).output_dim == D
+    with pytest.raises(ValueError, match=r"N=5, W=6"):
+        dnc.step(torch.randn(*batch, D), torch.zeros(*batch, N, W + 1))
+    with pytest.raises(ValueError, match="input_dim=8"):
+        dnc.step(torch.randn(*batch, D + 1), dnc.initial_memory(batch))
+
+
+def test_content_addressing_picks_most_similar_slot():
+    memory = torch.tensor([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [1.0, 1.0, 0.0]])
+    key = torch.tensor([0.1, 0.9, 0.05]) * 7.0  # cosine ignores the key's scale
+    w = DNCMemory.content_weights(key, memory, torch.tensor(5.0))
+    assert w.shape == (4,)
+    assert w.argmax().item() == 1
+    torch.testing.assert_close(w.sum(), torch.tensor(1.0))
+    # closed form: softmax(beta * cos)
+    cos = (memory @ key) / (memory.norm(dim=-1) * key.norm())
+    torch.testing.assert_close(w, torch.softmax(5.0 * cos, -1))
+    # sharper with a larger strength
+    w_sharp = DNCMemory.content_weights(key, memory, torch.tensor(50.0))
+    assert w_sharp[1] > w[1] and w_sharp[1] > 0.99
+    # batched
+    keys = torch.stack([memory[2], memory[0]])
+    wb = DNCMemory.content_weights(keys, memory.expand(2, 4, 3), torch.tensor([20.0, 20.0]))
+    assert wb.argmax(-1).tolist() == [2, 0]
+
+
+def test_zero_memory_gives_uniform_weights_and_finite_grads():
+    memory = torch.zeros(3, 4, requires_grad=True)
+    key = torch.randn(4, requires_grad=True)
+    w = DNCMemory.content_weights(key, memory, torch.tensor(3.0))
+    torch.testing.assert_close(w, torch.full((3,), 1 / 3))
+    (w * torch.arange(3.0)).sum().backward()
+    assert torch.isfinite(memory.grad).all() and torch.isfinite(key.grad).all()
+
+
+def test_write_erase_and_read_closed_form():
+    memory = torch.tensor([[1.0, 2.0], [3.0, 4.0]])
+    w = torch.tensor([0.25, 0.75])
+    erase = torch.tensor([0.5, 1.0])
+    add = torch.tensor([-1.0, 2.0])
+    g = torch.tensor(0.8)
+    new = DNCMemory.write(memory, w, erase, add, g)
+    expected = torch.empty(2, 2)
+    for i in range(2):
+        for j in range(2):
+            gw = float(g) * float(w[i])
+            expected[i, j] = memory[i, j] * (1 - gw * erase[j]) + gw * add[j]
+    # slot 0: gw = 0.2 -> [1*(0.9) - 0.2, 2*(0.8) + 0.4] = [0.7, 2.0]
+    torch.testing.assert_close(expected[0], torch.tensor([0.7, 2.0]))
+    torch.testing.assert_close(new, expected)
+    r = DNCMemory.read(new, torch.tensor([0.4, 0.6]))
+    torch.testing.assert_close(r, 0.4 * new[0] + 0.6 * new[1])
+    # gate 0 leaves the memory untouched; full erase + gate 1 + one-hot weights overwrite the slot
+    torch.testing.assert_close(DNCMemory.write(memory, w, erase, add, torch.tensor(0.0)), memory)
+    over = DNCMemory.write(memory, torch.tensor([0.0, 1.0]), torch.ones(2), add, torch.tensor(1.0))
+    torch.testing.assert_close(over, torch.stack([memory[0], add]))
+
+
+def test_step_reads_after_write_and_stays_bounded():
+    torch.manual_seed(0)
+    dnc = DNCMemory(D, N, W)
+    mem = dnc.initial_memory((4,))
+    for _ in range(50):
+        x = torch.randn(4, D) * 1e3
+        out, mem = dnc.step(x, mem)
+        assert torch.isfinite(out).all() and torch.isfinite(mem).all()
+        assert mem.abs().max() <= dnc.memory_clip
+    # step = write with content weights, then read from the *written* memory
+    x = torch.randn(4, D)
+    c = dnc.interface_vectors(x)
+    w_w = dnc.content_weights(c["write_key"], mem, c["write_strength"])
+    m2 = dnc.write(mem, w_w, c["erase"], c["write_vector"], c["write_gate"])
+    r = dnc.read(m2, dnc.content_weights(c["read_key"], m2, c["read_strength"]))
+    out, new = dnc.step(x, mem)
+    torch.testing.assert_close(new, m2)
+    torch.testing.assert_close(out, torch.nn.functional.gelu(dnc.out(torch.cat([x, r], -1))))
+
+
+def test_memory_clamp_is_counted_and_logged(caplog):
+    dnc = DNCMemory(D, N, W, memory_clip=1.5)
+    with torch.no_grad():  # no erase, full gate, write vector ~ +1: every step adds ~1/N to every slot
+        bias = dnc.interface.bias.view(-1)
+        dnc.interface.weight.zero_()
+        bias.zero_()
+        bias[W + 1 : 2 * W + 1] = -30.0  # erase logits
+        bias[2 * W + 1 : 3 * W + 1] = 30.0  # write-vector pre-tanh
+        bias[3 * W + 1] = 30.0  # gate logit
+    mem = dnc.initial_memory((2,))
+    with caplog.at_level("WARNING", logger="freamer_rl.layers.dnc"):
+        for _ in range(3 * N):
+            _, mem = dnc.step(torch.randn(2, D), mem)
+    assert dnc.clip_events > 0
+    assert "clamped" in caplog.text
+    torch.testing.assert_close(mem, torch.full_like(mem, 1.5))
+    unclamped = DNCMemory(D, N, W, memory_clip=None)
+    unclamped.load_state_dict(dnc.state_dict())
+    m = unclamped.initial_memory((2,))
+    for _ in range(3 * N):
+        _, m = unclamped.step(torch.randn(2, D), m)
+    assert m.max() > 2.5 and unclamped.clip_events == 0  # the DNC update itself is not bounded
+    with pytest.raises(ValueError, match="memory_clip"):
+        DNCMemory(D, N, W, memory_clip=0.0)
+
+
+def test_clamp_counting_is_skipped_under_vmap():
+    dnc = DNCMemory(D, N, W, memory_clip=1e-3)
+    out, mem = torch.vmap(dnc.step)(torch.randn(3, D), torch.rand(3, N, W))
+    assert mem.abs().max() <= 1e-3 and dnc.clip_events == 0
+
+
+def _module(**kw):
+    return DNCModule(D, memory_slots=N, memory_width=W, output_dim=4, **kw)
+
+
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_module_step_mode_and_is_init_reset(batch):
+    torch.manual_seed(0)
+    module = _module()
+    assert module.in_keys == ["fused", ("dnc", "memory"), "is_init"]
+    assert module.out_keys == ["hidden", ("next", "dnc", "memory")]
+    x = torch.randn(*batch, D)
+    memory = torch.rand(*batch, N, W) * 2 - 1
+    is_init = torch.zeros(*batch, 1, dtype=torch.bool)
+    if batch:
+        is_init.view(-1, 1)[0] = True
+    else:
+        is_init[...] = True
+    td = TensorDict({"fused": x, ("dnc", "memory"): memory, "is_init": is_init}, batch_size=batch)
+    module(td)
+    assert td["hidden"].shape == (*batch, 4)
+    assert td["next", "dnc", "memory"].shape == (*batch, N, W)
+    expected_mem = torch.where(is_init[..., None], torch.zeros_like(memory), memory)
+    out, new = module.dnc.step(x, expected_mem)
+    torch.testing.assert_close(td["hidden"], out)
+    torch.testing.assert_close(td["next", "dnc", "memory"], new)
+    # root memory is left untouched (it is the state *before* the step)
+    torch.testing.assert_close(td["dnc", "memory"], memory)
+
+
+def test_module_missing_keys_raise_clear_errors():
+    module = _module()
+    with pytest.raises(KeyError, match="make_tensordict_primer"):
+        module(TensorDict({"fused": torch.randn(D), "is_init": torch.ones(1, dtype=torch.bool)}, []))
+    with pytest.raises(KeyError, match="InitTracker"):
+        module(TensorDict({"fused": torch.randn(D), ("dnc", "memory"): torch.zeros(N, W)}, []))
+    with pytest.raises(ValueError, match="must have shape"):
+        module(
+            TensorDict(
+                {"fused": torch.randn(D), ("dnc", "memory"): torch.zeros(N, W), "is_init": torch.ones(2).bool()}, []
+            )
+        )
+
+
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_recurrent_mode_equals_stepping(batch):
+    torch.manual_seed(0)
+    module = _module(in_key="obs_embed", out_key="h", memory_key="mem", is_init_key="start")
+    T = 6
+    x = torch.randn(*batch, T, D)
+    memory0 = torch.rand(*batch, N, W) * 2 - 1
+    is_init = torch.zeros(*batch, T, 1, dtype=torch.bool)
+    is_init[..., 3, :] = True  # an episode boundary in the middle of every row
+    if batch:
+        is_init.view(-1, T, 1)[0, 1] = True  # and another one for the first row only
+    # step one t at a time, carrying ("next", mem) -> mem as a rollout would
+    outs, nexts, roots = [], [], []
+    mem = memory0
+    for t in range(T):
+        td_t = TensorDict({"obs_embed": x[..., t, :], "mem": mem, "start": is_init[..., t, :]}, batch_size=batch)
+        module(td_t)
+        roots.append(mem)
+        outs.append(td_t["h"])
+        nexts.append(td_t["next", "mem"])
+        mem = td_t["next", "mem"]
+    stacked_roots = torch.stack(roots, dim=len(batch))
+    # recurrent mode only reads the root memory at t = 0: poison the others
+    garbage = torch.randn_like(stacked_roots) * 100
+    garbage.select(len(batch), 0).copy_(memory0)
+    td = TensorDict({"obs_embed": x, "mem": garbage, "start": is_init}, batch_size=(*batch, T))
+    with set_recurrent_mode(True):
+        module(td)
+    torch.testing.assert_close(td["h"], torch.stack(outs, dim=len(batch)), atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(td["next", "mem"], torch.stack(nexts, dim=len(batch)), atol=1e-5, rtol=1e-5)
+    # and outside recurrent mode the same tensordict is T independent steps from the stored roots
+    td2 = TensorDict({"obs_embed": x, "mem": stacked_roots, "start": is_init}, batch_size=(*batch, T))
+    module(td2)
+    torch.testing.assert_close(td2["h"], torch.stack(outs, dim=len(batch)), atol=1e-5, rtol=1e-5)
+
+
+def test_recurrent_mode_needs_time_dim_and_default_mode():
+    module = _module()
+    td = TensorDict({"fused": torch.randn(D), ("dnc", "memory"): torch.zeros(N, W), "is_init": torch.ones(1).bool()})
+    with set_recurrent_mode(True), pytest.raises(ValueError, match="at least one batch dim"):
+        module(td)
+    assert not module.recurrent_mode
+    assert _module(default_recurrent_mode=True).recurrent_mode
+    with set_recurrent_mode(False):
+        assert not _module(default_recurrent_mode=True).recurrent_mode
+
+
+def test_gradients_flow_through_time():
+    torch.manual_seed(0)
+    module = _module()
+    B, T = 2, 5
+    x = torch.randn(B, T, D, requires_grad=True)
+    td = TensorDict(
+        {"fused": x, ("dnc", "memory"): torch.zeros(B, T, N, W), "is_init": torch.zeros(B, T, 1, dtype=torch.bool)},
+        batch_size=(B, T),
+    )
+    with set_recurrent_mode(True):
+        module(td)
+    td["hidden"][:, -1].pow(2).sum().backward()
+    assert x.grad[:, 0].abs().sum() > 0  # the first input influences the last output only through the memory
+
+
+class _ToyEnv(EnvBase):
+    """Unbatched env: 8-d random observation, 1-d continuous action, episodes of ``episode_len`` steps."""
+
+    def __init__(self, episode_len: int = 4):
+        super().__init__(batch_size=torch.Size([]))
+        self.episode_len = episode_len
+        self.observation_spec = Composite(observation=Unbounded(shape=(8,)))
+        self.action_spec = Bounded(low=-1.0, high=1.0, shape=(1,))
+        self.reward_spec = Unbounded(shape=(1,))
+        self.done_spec = Composite(
+            done=Categorical(2, shape=(1,), dtype=torch.bool),
+            terminated=Categorical(2, shape=(1,), dtype=torch.bool),
+            truncated=Categorical(2, shape=(1,), dtype=torch.bool),
+        )
+        self._t = 0
+        self._rng = torch.Generator().manual_seed(0)
+
+    def _reset(self, tensordict):
+        self._t = 0
+        false = torch.zeros(1, dtype=torch.bool)
+        return TensorDict(
+            {"observation": torch.randn(8, generator=self._rng), "done": false, "terminated": false, "truncated": false}
+        )
+
+    def _step(self, tensordict):
+        self._t += 1
+        done = torch.tensor([self._t >= self.episode_len])
+        obs = torch.randn(8, generator=self._rng) + tensordict["action"]
+        return TensorDict(
+            {
+                "observation": obs,
+                "reward": torch.zeros(1),
+                "done": done,
+                "terminated": done.clone(),
+                "truncated": torch.zeros(1, dtype=torch.bool),
+            }
+        )
+
+    def _set_seed(self, seed):
+        self._rng.manual_seed(int(seed) if seed is not None else 0)
+
+
+def _policy(dnc_module):
+    return TensorDictSequential(
+        TensorDictModule(nn.Linear(8, D), in_keys=["observation"], out_keys=["fused"]),
+        dnc_module,
+        TensorDictModule(nn.Sequential(nn.Linear(4, 1), nn.Tanh()), in_keys=["hidden"], out_keys=["action"]),
+    )
+
+
+def test_primer_rollout_carries_memory():
+    torch.manual_seed(0)
+    module = _module()
+    policy = _policy(module)
+    env = TransformedEnv(_ToyEnv(episode_len=4), Compose(InitTracker(), module.make_tensordict_primer()))
+    td0 = env.reset()
+    torch.testing.assert_close(td0["dnc", "memory"], torch.zeros(N, W))
+    with torch.no_grad():
+        rollout = env.rollout(10, policy, break_when_any_done=False)
+    assert rollout.batch_size == (10,)
+    is_init = rollout["is_init"].squeeze(-1)
+    assert is_init[0] and is_init[4] and is_init[8] and is_init.sum() == 3
+    root, nxt = rollout["dnc", "memory"], rollout["next", "dnc", "memory"]
+    assert nxt.abs().sum() > 0
+    for t in range(9):
+        expected = torch.zeros(N, W) if is_init[t + 1] else nxt[t]
+        torch.testing.assert_close(root[t + 1], expected)
+    # the stored trajectory replays exactly in recurrent mode (what the PPO loss will see)
+    replay = rollout.exclude("hidden", ("next", "dnc")).clone()
+    with torch.no_grad(), set_recurrent_mode(True):
+        module(replay)
+    torch.testing.assert_close(replay["hidden"], rollout["hidden"], atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(replay["next", "dnc", "memory"], nxt, atol=1e-5, rtol=1e-5)
+
+
+def test_collector_auto_registers_primer():
+    from torchrl.collectors import Collector
+
+    torch.manual_seed(0)
+    module = _module()
+    collector = Collector(
+        _ToyEnv(episode_len=3),
+        _policy(module),
+        frames_per_batch=7,
+        total_frames=7,
+        auto_register_policy_transforms=True,
+    )
+    try:
+        batch = next(iter(collector))
+    finally:
+        collector.shutdown()
+    assert ("dnc", "memory") in batch.keys(include_nested=True)
+    root, nxt = batch["dnc", "memory"], batch["next", "dnc", "memory"]
+    is_init = batch["is_init"].squeeze(-1)
+    for t in range(batch.shape[-1] - 1):
+        expected = torch.zeros(N, W) if is_init[t + 1] else nxt[t]
+        torch.testing.assert_close(root[t + 1], expected)

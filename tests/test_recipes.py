@@ -1,0 +1,43 @@
+"""A short smoke run of every recipe (shrunk by overrides to a couple of tiny batches)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from freamer_rl.config import load_config
+from freamer_rl.train import Trainer
+
+ROOT = Path(__file__).resolve().parents[1]
+RECIPES = sorted((ROOT / "recipes").glob("*.yaml"))
+
+SHRINK = [
+    "env.num_envs=2",
+    "ppo.frames_per_batch=32",
+    "ppo.sequence_length=8",
+    "ppo.minibatch_size=16",
+    "ppo.epochs=1",
+    "run.total_frames=64",
+    "logging.progress_bar=false",
+    "logging.checkpoint_every_frames=1000000",
+]
+
+
+@pytest.mark.parametrize("recipe", RECIPES, ids=[r.stem for r in RECIPES])
+def test_recipe_smoke(recipe, tmp_path):
+    cfg = load_config(recipe)
+    extra = []
+    if "vision" in cfg.model.modalities and cfg.model.vision.backbone == "clip":
+        from freamer_rl.layers.clip_backbone import ClipNotInstalledError, import_open_clip
+
+        try:
+            import_open_clip()
+        except ClipNotInstalledError as err:
+            pytest.skip(f"CLIP backbone unavailable here: {err}")
+        # No CLIP weights can be downloaded here: exercise the recipe with explicitly random weights.
+        extra = ["model.vision.clip_pretrained=null", "model.vision.allow_random_weights=true"]
+    cfg = load_config(recipe, SHRINK + extra)
+    summary = Trainer(cfg, tmp_path / recipe.stem).train()
+    assert summary["frames"] == 64
+    assert (tmp_path / recipe.stem / "learning_curve.png").is_file()
