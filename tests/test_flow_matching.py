@@ -137,3 +137,13 @@ def test_gate_gradient_and_errors():
         FlowMatchingRefiner(4, steps=0)
     with pytest.raises(ValueError, match="noise_std"):
         ref.cfm_loss(torch.randn(2, 4), noise_std=-1.0)
+
+
+def test_scalar_time_fast_path_matches_concatenated_input():
+    torch.manual_seed(0)
+    ref = FlowMatchingRefiner(16, hidden=32)
+    x = torch.randn(5, 16)
+    for t in (0.0, 0.25, 0.75):
+        fast = ref.velocity(x, t)
+        slow = ref.net(torch.cat([x, torch.full((5, 1), t)], dim=-1))
+        assert torch.allclose(fast, slow, atol=1e-6)

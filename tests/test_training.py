@@ -187,3 +187,23 @@ def test_console_script_installed(tmp_path):
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: ppo.epochs: expected int, got str 'many'"]
+
+
+def test_interrupted_run_checkpoints_and_resumes(tmp_path, monkeypatch):
+    run = tmp_path / "run"
+    cfg = tiny_cfg("run.total_frames=384", "logging.checkpoint_every_frames=100000")
+    trainer = Trainer(cfg, run)
+    real_update, calls = trainer._update, []
+
+    def interrupted_on_second_batch(data):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_update(data)
+
+    monkeypatch.setattr(trainer, "_update", interrupted_on_second_batch)
+    with pytest.raises(KeyboardInterrupt):
+        trainer.train()
+    resumed = Trainer(cfg, run)
+    assert resumed.frames == 128  # the first batch was trained and checkpointed on interrupt
+    assert resumed.train()["frames"] == 384

@@ -39,6 +39,7 @@ from __future__ import annotations
 import math
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 __all__ = ["FlowMatchingRefiner", "cfm_interpolant"]
@@ -150,6 +151,14 @@ class FlowMatchingRefiner(nn.Module):
         """
         if x.shape[-1] != self.dim:
             raise ValueError(f"x must have last dim {self.dim} (the refiner's dim); got shape {tuple(x.shape)}")
+        first = self.net[0]
+        if isinstance(first, nn.Linear) and not isinstance(t, torch.Tensor):
+            # Same maths as net(cat[x, t]) for a scalar time (every Euler step): fold t into the first bias,
+            # W [x; t] + b = W_x x + (b + t W_t), which saves building and concatenating a time column.
+            bias = first.weight[:, self.dim] * float(t)
+            if first.bias is not None:
+                bias = bias + first.bias
+            return self.net[1:](F.linear(x, first.weight[:, : self.dim], bias))
         return self.net(torch.cat([x, _time_column(t, x)], dim=-1))
 
     def integrate(self, e: torch.Tensor, steps: int | None = None) -> torch.Tensor:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import sys
 import time
 
 import torch
@@ -140,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
     result = run(args.batch, args.horizon, args.rounds, args.rollouts_per_round, args.threads)
-    print(json.dumps(result))  # noqa: T201 -- CLI output
+    sys.stdout.write(json.dumps(result) + "\n")
     return 0
 
 
