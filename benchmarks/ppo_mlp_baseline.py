@@ -30,7 +30,7 @@ from torchrl.objectives.value import GAE
 
 def make_flat_env(env_id: str, seed: int):
     env = TransformedEnv(
-        GymWrapper(FlatObsWrapper(gym.make(env_id))),
+        GymWrapper(FlatObsWrapper(gym.make(env_id)), categorical_action_encoding=True),
         Compose(DTypeCastTransform(torch.uint8, torch.float32, in_keys=["observation"]), StepCounter(), RewardSum()),
     )
     env.set_seed(seed)

@@ -3,6 +3,7 @@
     freamer-rl train recipes/minigrid_multiroom_n2s4.yaml ppo.lr=3e-4 run.seed=1
     freamer-rl eval runs/<name>/checkpoints/checkpoint_000100000.pt --episodes 50
     freamer-rl params recipes/minigrid_multiroom_n2s4_clip.yaml
+    freamer-rl health train recipes/health/health_foundation.yaml
 
 User errors (bad recipe key or type, unknown env id, a modality the env lacks, missing CLIP weights, a checkpoint
 from another config) print one ``error:`` line and exit with status 2; ``--debug`` shows the traceback.
@@ -40,6 +41,11 @@ def _parser() -> argparse.ArgumentParser:
     p_eval.add_argument("--num-envs", type=int, default=None)
     p_eval.add_argument("--seed", type=int, default=12345)
 
+    p_health = sub.add_parser(
+        "health", help="wearable-health world model: train | anomaly (see freamer-rl health --help)", add_help=False
+    )
+    p_health.add_argument("health_args", nargs=argparse.REMAINDER)
+
     p_params = sub.add_parser("params", help="print the parameter table (trainable vs frozen per component)")
     p_params.add_argument("recipe")
     p_params.add_argument("overrides", nargs="*")
@@ -71,6 +77,10 @@ def _run(args: argparse.Namespace) -> int:
         )
         sys.stdout.write(json.dumps(result, indent=2) + "\n")
         return 0
+    if args.command == "health":
+        from freamer_rl.health.cli import main as health_main
+
+        return health_main(args.health_args, prog="freamer-rl health")
     if args.command == "params":
         from freamer_rl.config import load_config
         from freamer_rl.params import format_parameter_table, parameter_table
@@ -84,7 +94,12 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = _parser().parse_args(argv)
+    parser = _parser()
+    args, unknown = parser.parse_known_args(argv)
+    if args.command == "health":  # its own parser takes everything after "health", options included
+        args.health_args = unknown + args.health_args
+    elif unknown:
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     logging.basicConfig(level=getattr(logging, args.log_level), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     try:
         return _run(args)

@@ -1,0 +1,55 @@
+"""Wearable health management (paper Section 5, Appendices C and J) as TorchRL parts.
+
+* :mod:`.encoders` -- the four observation encoders of Table 15 (MLP, CNN, SlotAttn+CrossAttn, Foundation), each a
+  pluggable encoder of :class:`~freamer_rl.world_model.rssm.WorldModel`.
+* :mod:`.pipeline` -- :class:`HealthConfig` (YAML recipes ``recipes/health/health_*.yaml``), :func:`run_health`
+  (real-env collection -> world model -> imagination PPO -> real-env evaluation) and :func:`anomaly_report`
+  (J.5 / Fig. 4).
+* :mod:`.cli` -- ``python -m freamer_rl.health.cli {train,anomaly} ...``.
+
+The real env is built through the ``freamer_rl.envs`` entry point ``health`` (the library never imports ``envs``).
+"""
+
+from freamer_rl.health.encoders import (
+    ENCODER_KINDS,
+    CNNHealthEncoder,
+    FoundationHealthEncoder,
+    HealthStage1,
+    MLPHealthEncoder,
+    SlotCrossAttnHealthEncoder,
+    make_health_encoder,
+)
+from freamer_rl.health.pipeline import (
+    HealthAgent,
+    HealthConfig,
+    HealthPolicy,
+    anomaly_report,
+    build_agent,
+    health_config_from_dict,
+    health_config_to_dict,
+    imagination_horizon,
+    load_agent,
+    load_health_config,
+    run_health,
+)
+
+__all__ = [
+    "ENCODER_KINDS",
+    "MLPHealthEncoder",
+    "CNNHealthEncoder",
+    "HealthStage1",
+    "SlotCrossAttnHealthEncoder",
+    "FoundationHealthEncoder",
+    "make_health_encoder",
+    "HealthConfig",
+    "HealthAgent",
+    "HealthPolicy",
+    "load_health_config",
+    "health_config_from_dict",
+    "health_config_to_dict",
+    "build_agent",
+    "load_agent",
+    "run_health",
+    "anomaly_report",
+    "imagination_horizon",
+]
