@@ -36,7 +36,8 @@ def make_env(adapter: str, env_id: str, *, seed: int | None = None, **options: A
         return factory(env_id, seed=seed, **options)
     except EnvSetupError:
         raise
-    except (ValueError, KeyError) as err:
-        # Adapters report unknown ids / bad options as ValueError; keep their one-line message.
+    except ValueError as err:
+        # Adapters report unknown ids / bad options as ValueError; keep their one-line message. Other exception
+        # types are bugs and keep their traceback.
         msg = err.args[0] if err.args else repr(err)
         raise EnvSetupError(f"env.id '{env_id}' ({adapter} adapter): {msg}") from err
