@@ -40,6 +40,7 @@ def test_overrides_are_typed(tmp_path):
         ("ppo.sequence_length=7", "ppo.sequence_length"),
         ("env=3", "env: expected a mapping"),
         ("novalue", "dotted.key=value"),
+        ("model.freeze_encoders=[vision]", "model.freeze_encoders: 'vision' is not one of model.modalities"),
     ],
 )
 def test_bad_overrides_name_the_field(override, fragment):

@@ -20,6 +20,16 @@ BATCH_SHAPES = [(), (2,), (3, 2)]
 D = 32
 
 
+def require_open_clip():
+    """open_clip through the library's importer (which copes with a CUDA torchvision beside CPU torch), or skip."""
+    from freamer_rl.layers.clip_backbone import ClipNotInstalledError, import_open_clip
+
+    try:
+        return import_open_clip()
+    except ClipNotInstalledError as err:
+        pytest.skip(f"CLIP unavailable here: {err}")
+
+
 def _assert_all_grads(module, skip=()):
     for name, p in module.named_parameters():
         if not p.requires_grad or any(name.startswith(s) for s in skip):
@@ -234,7 +244,7 @@ def test_clip_backbone_without_open_clip(monkeypatch):
 
 @pytest.fixture(scope="module")
 def random_clip():
-    pytest.importorskip("open_clip")
+    require_open_clip()
     from freamer_rl.layers.clip_backbone import ClipBackbone
 
     torch.manual_seed(0)
@@ -276,7 +286,7 @@ def test_clip_checkpoint_roundtrip(random_clip, tmp_path):
 
 def test_clip_tag_from_local_hub_cache(random_clip, tmp_path, monkeypatch):
     """A pre-filled Hugging Face cache resolves the tag without any network call (image-tower-only state dict)."""
-    import open_clip
+    open_clip = require_open_clip()
 
     from freamer_rl.layers.clip_backbone import ClipBackbone
 
@@ -295,7 +305,7 @@ def test_clip_tag_from_local_hub_cache(random_clip, tmp_path, monkeypatch):
 
 
 def test_clip_missing_checkpoint_file(tmp_path):
-    pytest.importorskip("open_clip")
+    require_open_clip()
     from freamer_rl.layers.clip_backbone import ClipBackbone, ClipWeightsError
 
     missing = tmp_path / "nope" / "clip.pt"
@@ -306,7 +316,7 @@ def test_clip_missing_checkpoint_file(tmp_path):
 
 
 def test_clip_offline_download_failure(tmp_path, monkeypatch):
-    open_clip = pytest.importorskip("open_clip")
+    open_clip = require_open_clip()
     from freamer_rl.layers.clip_backbone import ClipBackbone, ClipWeightsError
 
     def offline(*args, **kwargs):
@@ -324,7 +334,7 @@ def test_clip_offline_download_failure(tmp_path, monkeypatch):
 
 
 def test_clip_unknown_tag_and_no_weights():
-    pytest.importorskip("open_clip")
+    require_open_clip()
     from freamer_rl.layers.clip_backbone import ClipBackbone, ClipWeightsError
 
     with pytest.raises(ClipWeightsError, match="unknown pretrained tag 'no-such-tag'"):
@@ -334,7 +344,7 @@ def test_clip_unknown_tag_and_no_weights():
 
 
 def test_clip_checkpoint_that_does_not_fit(tmp_path):
-    pytest.importorskip("open_clip")
+    require_open_clip()
     from freamer_rl.layers.clip_backbone import ClipBackbone, ClipWeightsError
 
     bad = tmp_path / "bad.pt"
@@ -374,9 +384,26 @@ def test_language_inference_cache_is_invalidated_by_parameter_updates():
         first = enc(tokens)
         assert len(enc._cache) == 2
         assert torch.equal(enc(tokens), first)
-        enc.embed.weight.add_(0.5)  # an optimiser step is an in-place update: the cache must not serve stale slots
+        # an optimiser step is an in-place update: the cache must not serve stale slots. (A uniform shift would be
+        # invisible: the LayerNorms remove it, so perturb each weight differently.)
+        enc.embed.weight.add_(0.5 * torch.randn_like(enc.embed.weight))
         updated = enc(tokens)
     enc.cache_inference = False
     with torch.no_grad():
         assert torch.allclose(updated, enc(tokens), atol=1e-6)
     assert not torch.allclose(updated, first)
+
+
+def test_torchvision_ops_without_kernels_still_fail_loudly():
+    """The schemas declared so that torchvision imports beside a CPU torch must not pose as working operators."""
+    require_open_clip()
+    import torchvision
+    from torchvision.extension import _has_ops
+
+    boxes = torch.tensor([[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 1.0, 1.0]])
+    scores = torch.tensor([1.0, 0.5])
+    if _has_ops():  # a torchvision build whose C++ operators load: real non-maximum suppression
+        assert torchvision.ops.nms(boxes, scores, 0.5).tolist() == [0]
+    else:
+        with pytest.raises((RuntimeError, NotImplementedError)):
+            torchvision.ops.nms(boxes, scores, 0.5)

@@ -224,3 +224,18 @@ def test_channels_last_dft_path_matches_fft_path(n, modes):
     g_dft = torch.autograd.grad(y_dft.square().sum(), (x, conv.weight))
     for a, b in zip(g_fft, g_dft):
         assert torch.allclose(a, b, atol=1e-9)
+
+
+@pytest.mark.parametrize("batch", [(), (2,), (3, 2)])
+def test_fuser_output_norm_rescales_only_the_pooled_vector(batch):
+    torch.manual_seed(0)
+    plain = FNOFuser(num_modalities=3, dim=32, modes=8)
+    normed = FNOFuser(num_modalities=3, dim=32, modes=8, output_norm=True)
+    normed.load_state_dict(plain.state_dict(), strict=False)  # same spectral/pointwise weights
+    e = torch.randn(*batch, 3, 32)
+    fused_plain, out_plain = plain(e)
+    fused, out = normed(e)
+    torch.testing.assert_close(out, out_plain)  # E_out (and so the smoothness loss) is unchanged
+    torch.testing.assert_close(fused, torch.nn.functional.layer_norm(fused_plain, (32,)), atol=1e-5, rtol=1e-5)
+    assert fused.shape == (*batch, 32)
+    torch.testing.assert_close(fused.std(dim=-1, unbiased=False), torch.ones(batch), atol=1e-3, rtol=0)

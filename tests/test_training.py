@@ -126,6 +126,29 @@ def test_trainer_run_directory_and_resume(tmp_path):
         Trainer(tiny_cfg("run.total_frames=512", "model.embed_dim=16"), run)
 
 
+def test_frozen_encoders_are_left_out_of_training(tmp_path):
+    cfg = tiny_cfg("model.freeze_encoders=[language, reward]", "run.total_frames=128")
+    trainer = Trainer(cfg, tmp_path / "run")
+    frozen = {
+        name: p.detach().clone()
+        for name, p in trainer.modules.trunk.named_parameters()
+        if not p.requires_grad
+    }
+    assert frozen, "the language and reward encoders should be frozen"
+    assert all(p.requires_grad for p in trainer.params)  # the optimiser holds trainable parameters only
+    trained = {n: p.detach().clone() for n, p in trainer.modules.trunk.named_parameters() if p.requires_grad}
+    trainer.train()
+    params = dict(trainer.modules.trunk.named_parameters())
+    for name, before in frozen.items():
+        assert torch.equal(params[name], before), name
+    assert any(not torch.equal(params[n], before) for n, before in trained.items())  # the rest did train
+    # the parameter table counts them as frozen
+    from freamer_rl.params import parameter_table
+
+    rows = {r["component"]: r for r in parameter_table(trainer.modules)}
+    assert any(r["frozen"] > 0 for r in rows.values())
+
+
 def test_two_worker_collection(tmp_path):
     summary = Trainer(tiny_cfg("collector.num_collectors=2", "env.num_envs=1", "run.total_frames=256"), tmp_path / "r").train()
     assert summary["frames"] == 256

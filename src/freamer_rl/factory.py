@@ -170,6 +170,12 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
     for m in SLOT_MODALITIES:
         if m in modalities:
             steps.append(TensorDictModule(SlotPool(), in_keys=[("slots", m)], out_keys=[("embed", m)]))
+    for m in cfg.freeze_encoders:
+        # Layer-1 encoder of m: the step that reads m's observation keys (the CLIP tower is frozen regardless)
+        encoder = next(s for s in steps if set(s.in_keys) == set(MODALITY_KEYS[m]))
+        encoder.requires_grad_(False)
+        logger.info("model.freeze_encoders: the %s encoder is frozen (%d parameters)", m,
+                    sum(p.numel() for p in encoder.parameters()))
 
     # Layer 2: one flow-matching refiner per modality, each with its own gate init (Eq. 1-3).
     refiners = nn.ModuleDict()
@@ -185,7 +191,13 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
             StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"]
         )
     )
-    fuser = FNOFuser(num_modalities=len(modalities), dim=d, modes=cfg.fno.modes, residual_scale=cfg.fno.residual_scale)
+    fuser = FNOFuser(
+        num_modalities=len(modalities),
+        dim=d,
+        modes=cfg.fno.modes,
+        residual_scale=cfg.fno.residual_scale,
+        output_norm=cfg.fno.output_norm,
+    )
     steps.append(TensorDictModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
 
     # Layer 4: DNC episodic memory (Appendix F.1) or a plain projection when disabled.
