@@ -83,6 +83,51 @@ def test_bad_keys_and_types_name_the_field():
         load_health_config(None, ["bogus=1"])
 
 
+def test_recipes_explore_and_normalise():
+    """The recipes use the non-uniform exploration, the epsilon and the standardised reconstruction targets (the
+    fixes of the "always Rest" collapse); the world model built from them has recon_norm on."""
+    for path in RECIPES.values():
+        cfg = load_health_config(path)
+        probs = cfg.collect.explore_probs
+        assert probs is not None and len(probs) == 5 and probs[0] == max(probs) and probs[4] == min(probs)
+        assert 0.0 < cfg.collect.random_action_prob < 1.0
+        assert cfg.world_model.recon_norm
+    agent = build_agent(load_health_config(RECIPES["mlp"], TINY))
+    assert agent.world_model.recon_norm and agent.world_model.reward_scale == 5.0
+
+
+def test_exploration_config_errors():
+    with pytest.raises(ConfigError, match=r"collect\.random_action_prob"):
+        health_config_from_dict({"collect": {"random_action_prob": 1.5}})
+    with pytest.raises(ConfigError, match=r"collect\.explore_probs"):
+        health_config_from_dict({"collect": {"explore_probs": [1.0, 0.0]}})
+    with pytest.raises(ConfigError, match=r"collect\.explore_probs"):
+        health_config_from_dict({"collect": {"explore_probs": [1.0, -1.0, 0.0, 0.0, 0.0]}})
+
+
+def test_policy_exploration_draws_from_explore_probs():
+    """random_actions draws from explore_probs; random_action_prob=0 keeps the actor's action; 1 replaces all."""
+    torch.manual_seed(0)
+    cfg = load_health_config(None, [*TINY, "encoder.kind=mlp"])
+    agent = build_agent(cfg)
+    only_rest = [0.0, 1.0, 0.0, 0.0, 0.0]
+    for kwargs, check in (
+        ({"random_actions": True, "explore_probs": only_rest}, lambda a, g: (a == 1).all()),
+        ({"random_action_prob": 1.0, "explore_probs": [0.0, 0.0, 0.0, 0.0, 1.0]}, lambda a, g: (a == 4).all()),
+        ({"random_action_prob": 0.0, "explore_probs": only_rest}, lambda a, g: torch.equal(a, g)),
+    ):
+        policy = agent.policy(sample_latent=False, **kwargs)
+        env = make_health_env(cfg, num_envs=3, seed=1, primer=policy.make_tensordict_primer())
+        with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
+            traj = env.rollout(6, policy, break_when_any_done=False)
+        greedy = traj["logits"].argmax(-1)
+        assert check(traj["action"], greedy), kwargs
+    with pytest.raises(ValueError, match="explore_probs"):
+        agent.policy(explore_probs=[0.5, 0.5])
+    with pytest.raises(ValueError, match="random_action_prob"):
+        agent.policy(random_action_prob=-0.1)
+
+
 def test_policy_filter_matches_world_model_posterior():
     """The online filter of HealthPolicy (foundation encoder: DNC stepped online) gives the posterior that
     WorldModel.observe computes over the recorded episode, and its KL is WorldModel.episode_kl."""

@@ -234,3 +234,61 @@ def test_loss_decreases_on_slice_sampler_data():
     rec_first = sum(h["loss_rec"] for h in hist[:5]) / 5
     rec_last = sum(h["loss_rec"] for h in hist[-5:]) / 5
     assert rec_last < 0.5 * rec_first, (rec_first, rec_last)
+
+
+def test_recon_norm_running_stats_and_decode():
+    """recon_norm: the running per-feature mean/var equal those of all training batches seen; decode() inverts the
+    standardisation; eval mode leaves the statistics alone; the buffers round-trip through the state dict."""
+    torch.manual_seed(0)
+    wm = small_wm(recon_norm=True)
+    b1, b2 = random_slice((4, 5)), random_slice((3, 5))
+    b1["imu"] = b1["imu"] * 10 + 3
+    b1["next", "imu"] = b1["next", "imu"] * 10 + 3
+    wm.train()
+    wm.loss(b1)
+    wm.loss(b2)
+    seqs = [wm.sequence(b)["obs"] for b in (b1, b2)]
+    for i, k in enumerate(OBS_DIMS):
+        x = torch.cat([s[k].reshape(-1, OBS_DIMS[k]) for s in seqs]).double()
+        assert torch.allclose(wm.recon_mean_0 if i == 0 else wm.recon_mean_1, x.mean(0).float(), atol=1e-5)
+        assert torch.allclose(wm.recon_var_0 if i == 0 else wm.recon_var_1, x.var(0, unbiased=False).float(),
+                              atol=1e-4)  # fmt: skip
+    assert float(wm.recon_count) == 4 * 6 + 3 * 6
+    # targets are standardised; decode(latent) maps the decoder output back to raw units
+    tgt = wm.recon_target("imu", b1["imu"])
+    assert tgt.mean().abs() < 1.0 and 0.3 < tgt.std() < 3.0
+    latent = torch.randn(2, wm.latent_dim)
+    raw = wm.decode(latent)
+    std = wm.recon_var_0.sqrt().clamp_min(wm.norm_std_floor)
+    assert torch.allclose(raw["imu"], wm.decoder(latent)["imu"] * std + wm.recon_mean_0, atol=1e-5)
+    # eval mode: no update
+    before = wm.recon_mean_0.clone()
+    wm.eval()
+    wm.loss(random_slice((2, 5)))
+    assert torch.equal(before, wm.recon_mean_0)
+    wm2 = small_wm(recon_norm=True)
+    wm2.load_state_dict(wm.state_dict())
+    assert torch.equal(wm2.recon_var_1, wm.recon_var_1)
+    with pytest.raises(ValueError, match="norm_std_floor"):
+        small_wm(recon_norm=True, norm_std_floor=0.0)
+
+
+def test_recon_norm_weights_small_scale_features():
+    """With recon_norm a small-scale feature (std 0.01) weighs as much in L_rec as a large one; with symlog targets
+    its error is invisible next to the large one (the cause of the health world model ignoring heart rate)."""
+    torch.manual_seed(0)
+    batch = random_slice((8, 6))
+    for key in ("hr_features", ("next", "hr_features")):
+        batch[key] = batch[key] * 0.01
+    for key in ("imu", ("next", "imu")):
+        batch[key] = batch[key] * 20.0
+    wm = small_wm(recon_norm=True)
+    wm.train()
+    wm.loss(batch)  # fit the statistics
+    seq = wm.sequence(batch)["obs"]
+    hr_norm = wm.recon_target("hr_features", seq["hr_features"]).pow(2).sum(-1).mean()
+    imu_norm = wm.recon_target("imu", seq["imu"]).pow(2).sum(-1).mean()
+    assert hr_norm / imu_norm > 0.3  # per feature both ~1: 3 vs 6 features
+    from freamer_rl.world_model.rssm import symlog
+
+    assert symlog(seq["hr_features"]).pow(2).sum(-1).mean() / symlog(seq["imu"]).pow(2).sum(-1).mean() < 1e-3

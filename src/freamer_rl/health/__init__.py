@@ -5,6 +5,8 @@
 * :mod:`.pipeline` -- :class:`HealthConfig` (YAML recipes ``recipes/health/health_*.yaml``), :func:`run_health`
   (real-env collection -> world model -> imagination PPO -> real-env evaluation) and :func:`anomaly_report`
   (J.5 / Fig. 4).
+* :mod:`.reference` -- fixed and heuristic reference policies (always Continue / Rest / ..., uniform random, a heart-rate
+  threshold) evaluated with the same real-env protocol: the yardstick of the imagination-trained policy.
 * :mod:`.cli` -- ``python -m freamer_rl.health.cli {train,anomaly} ...``.
 
 The real env is built through the ``freamer_rl.envs`` entry point ``health`` (the library never imports ``envs``).
@@ -32,6 +34,14 @@ from freamer_rl.health.pipeline import (
     load_health_config,
     run_health,
 )
+from freamer_rl.health.reference import (
+    REFERENCE_POLICIES,
+    ConstantActionPolicy,
+    HeartRateThresholdPolicy,
+    UniformRandomPolicy,
+    evaluate_reference,
+    make_reference_policy,
+)
 
 __all__ = [
     "ENCODER_KINDS",
@@ -52,4 +62,10 @@ __all__ = [
     "run_health",
     "anomaly_report",
     "imagination_horizon",
+    "REFERENCE_POLICIES",
+    "ConstantActionPolicy",
+    "UniformRandomPolicy",
+    "HeartRateThresholdPolicy",
+    "make_reference_policy",
+    "evaluate_reference",
 ]

@@ -11,10 +11,12 @@ One call of :func:`run_health` owns one run directory::
                                  imagination horizon, parameter counts, wall time)
     <run_dir>/checkpoint.pt      world model + actor + value + config (:func:`load_agent`)
 
-Loop (``collect.iterations`` times, after ``collect.prefill_frames`` frames of uniformly random actions)::
+Loop (``collect.iterations`` times, after ``collect.prefill_frames`` frames of random actions drawn from
+``collect.explore_probs``, uniform when null)::
 
     1. collect collect.frames_per_iter real-env frames with a TorchRL Collector and the current policy
-       (HealthPolicy: filters the world-model posterior online and acts on the latent) -> replay buffer
+       (HealthPolicy: filters the world-model posterior online and acts on the latent; with probability
+       collect.random_action_prob a random action from collect.explore_probs instead) -> replay buffer
        (LazyTensorStorage + SliceSampler over ("collector", "traj_ids"))
     2. world_model.train_steps steps of Eq. A27 on [batch_size, seq_len] slices,
        + lambda_FM * L_FM + lambda_s * L_smooth for the foundation encoder (Table A20: lambda_FM(WM) = 0.1)
@@ -94,6 +96,7 @@ __all__ = [
     "make_health_env",
     "train_world_model_step",
     "evaluate_policy",
+    "rollout_metrics",
     "reconstruction_mse",
     "imagination_horizon",
     "run_health",
@@ -165,6 +168,9 @@ class HealthWorldModelConfig:
     seq_len: int = 32  # steps per slice (the loss sees T + 1 = 33 observations)
     train_steps: int = 50  # gradient steps per iteration
     prefill_train_steps: int = 0  # extra gradient steps right after the random prefill
+    kl_balance: float | None = None  # None: the paper's KL(q || p); alpha: alpha KL(sg(q)||p) + (1-alpha) KL(q||sg(p))
+    recon_norm: bool = True  # standardised reconstruction targets (WorldModel.recon_norm: keeps the HR features)
+    reward_scale: float = 1.0  # weight of L_rew in Eq. A27
     lambda_fm: float = 0.1  # lambda_FM(WM), Table A20 (foundation encoder only)
     lambda_smooth: float = 1e-3  # lambda_s of Eq. A16 (foundation encoder only)
 
@@ -196,6 +202,13 @@ class HealthCollectConfig:
     iterations: int = 20
     prefill_frames: int = 2048  # uniformly random actions first
     frames_per_iter: int = 512
+    # epsilon of the collection policy after the prefill: keeps every action in the replay data so that the world
+    # model keeps learning what each intervention does (without it the data collapses onto the policy's action)
+    random_action_prob: float = 0.0
+    # distribution of the random actions (prefill and epsilon), over (Continue, Rest, Increase, Change, Alert);
+    # null = uniform. Uniform random data is ~98 % Alert-hold / level <= 0.25 (an Alert every 5 steps on average,
+    # each holding the level <= 0.25 for 30 s): the world model then never sees the planned intensity
+    explore_probs: list[float] | None = None
     buffer_capacity: int = 200_000
 
 
@@ -289,6 +302,13 @@ def validate_health_config(cfg: HealthConfig) -> None:
             f"eval.horizon_context + eval.horizon_max ({cfg.eval.horizon_context + cfg.eval.horizon_max}) must be "
             f"<= env.episode_length ({cfg.env.episode_length}): windows are cut from evaluation episodes"
         )
+    if not 0.0 <= cfg.collect.random_action_prob <= 1.0:
+        raise ConfigError(f"collect.random_action_prob: expected a probability in [0, 1], got "
+                          f"{cfg.collect.random_action_prob}")  # fmt: skip
+    try:
+        _explore_probs(cfg.collect.explore_probs, NUM_ACTIONS, "collect.explore_probs")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
     if cfg.collect.prefill_frames == 0 and cfg.collect.iterations == 0:
         raise ConfigError("collect: prefill_frames and iterations are both 0 (nothing to train on)")
 
@@ -381,7 +401,8 @@ def build_world_model(cfg: HealthConfig) -> WorldModel:
     enc = make_health_encoder(cfg.encoder.kind, cfg.encoder.embed_dim, **_encoder_kwargs(cfg.encoder))
     w = cfg.world_model
     return WorldModel(OBS_DIMS, NUM_ACTIONS, encoder=enc, embed_dim=cfg.encoder.embed_dim, deter_dim=w.deter_dim,
-                      stoch_dim=w.stoch_dim, hidden=w.hidden, beta=w.beta, free_nats=w.free_nats)  # fmt: skip
+                      stoch_dim=w.stoch_dim, hidden=w.hidden, beta=w.beta, free_nats=w.free_nats,
+                      kl_balance=w.kl_balance, recon_norm=w.recon_norm, reward_scale=w.reward_scale)  # fmt: skip
 
 
 def build_actor_value(latent_dim: int, hidden: int) -> tuple[ProbabilisticActor, ValueOperator]:
@@ -399,6 +420,16 @@ def build_actor_value(latent_dim: int, hidden: int) -> tuple[ProbabilisticActor,
     return actor, value
 
 
+def _explore_probs(probs: list[float] | None, num_actions: int, name: str) -> torch.Tensor:
+    """Normalised exploration distribution ``[num_actions]`` (uniform when ``probs`` is None)."""
+    if probs is None:
+        return torch.full((num_actions,), 1.0 / num_actions)
+    p = torch.as_tensor(list(probs), dtype=torch.float32)
+    if p.shape != (num_actions,) or not bool(torch.isfinite(p).all()) or bool((p < 0).any()) or float(p.sum()) <= 0:
+        raise ValueError(f"{name}: expected {num_actions} non-negative weights with a positive sum, got {probs!r}")
+    return p / p.sum()
+
+
 class HealthPolicy(TensorDictModuleBase):
     """Acting in the real env: filter the world-model posterior online, then sample the actor on the latent.
 
@@ -411,7 +442,8 @@ class HealthPolicy(TensorDictModuleBase):
 
         e_t = encoder.step(o_t)                     h_t = GRU(h_{t-1}, [z_{t-1}; a_{t-1}])       (Eq. A23)
         z_t ~ q(z | h_t, e_t) (mean if not sample_latent)                                         (Eq. A25)
-        a_t ~ pi(a | [h_t; z_t])   (uniform when random_actions)
+        a_t ~ pi(a | [h_t; z_t])   (a_t ~ explore_probs (default uniform) when random_actions, or with
+                                    probability random_action_prob)
 
     Writes ``"latent"``, ``"kl"`` (``KL(q || p)`` of this step, ``[*B, 1]``, J.5), the actor's ``"logits"``,
     ``"action"``, ``"action_log_prob"`` and the new state under ``("next", "wm_filter", ...)``. Runs under
@@ -419,12 +451,17 @@ class HealthPolicy(TensorDictModuleBase):
     """
 
     def __init__(self, world_model: WorldModel, actor: TensorDictModuleBase, *, sample_latent: bool = True,
-                 random_actions: bool = False) -> None:  # fmt: skip
+                 random_actions: bool = False, random_action_prob: float = 0.0,
+                 explore_probs: list[float] | None = None) -> None:  # fmt: skip
         super().__init__()
+        if not 0.0 <= random_action_prob <= 1.0:
+            raise ValueError(f"random_action_prob: expected a probability in [0, 1], got {random_action_prob}")
+        self.explore_probs = _explore_probs(explore_probs, world_model.action_dim, "explore_probs")
         self.world_model = world_model
         self.actor = actor
         self.sample_latent = sample_latent
         self.random_actions = random_actions
+        self.random_action_prob = random_action_prob
         enc = world_model.encoder
         self._enc_shapes = dict(enc.state_shapes()) if hasattr(enc, "state_shapes") else {}
         self.obs_keys = list(world_model.obs_dims)
@@ -474,8 +511,13 @@ class HealthPolicy(TensorDictModuleBase):
         tensordict.set("latent", torch.cat([out["h"], out["z"]], dim=-1))
         tensordict.set("kl", kl.unsqueeze(-1))
         tensordict = self.actor(tensordict)
-        if self.random_actions:
-            tensordict.set("action", torch.randint(0, wm.action_dim, bs, device=h.device))
+        if self.random_actions or self.random_action_prob > 0.0:
+            n = max(1, bs.numel())
+            random = torch.multinomial(self.explore_probs, n, replacement=True).reshape(bs).to(h.device)
+            if not self.random_actions:
+                explore = torch.rand(bs, device=h.device) < self.random_action_prob
+                random = torch.where(explore, random, tensordict.get("action"))
+            tensordict.set("action", random)
         action = wm.action_to_onehot(tensordict.get("action"), len(bs))
         tensordict.set(("next", *self.state_keys["deter"]), out["h"])
         tensordict.set(("next", *self.state_keys["stoch"]), out["z"])
@@ -603,6 +645,29 @@ def _episode_stats(data: TensorDictBase) -> dict[str, float]:
 # ----------------------------------------------------------------------------------------------------------------------
 # evaluation
 # ----------------------------------------------------------------------------------------------------------------------
+def rollout_metrics(traj: TensorDictBase) -> dict[str, float]:
+    """Per-episode metrics of a real-env rollout ``[n, L]`` (``break_when_any_done=False``, ``L`` >= the episode
+    length), read at each env's first ``("next", "done")``: ``return_mean``/``return_std`` (over episodes),
+    ``violations_mean``, ``length_mean``, ``episodes``. Raises ``ValueError`` when an env never finished."""
+    if traj.batch_dims != 2:
+        raise ValueError(f"rollout_metrics: expected a rollout [num_envs, steps], got batch shape {tuple(traj.shape)}")
+    n = traj.shape[0]
+    done = traj.get(("next", "done")).reshape(n, -1)  # [n, L]
+    if not bool(done.any(-1).all()):
+        raise ValueError(f"rollout_metrics: {int((~done.any(-1)).sum())} of {n} envs never reached done in "
+                         f"{traj.shape[1]} steps; roll at least env.episode_length steps")  # fmt: skip
+    first = done.float().argmax(dim=-1)
+    ep = traj.get(("next", "episode"))[torch.arange(n), first]
+    ret = ep["return"].float().squeeze(-1)
+    return {
+        "return_mean": float(ret.mean()),
+        "return_std": float(ret.std(unbiased=False)),
+        "violations_mean": float(ep["violations"].float().mean()),
+        "length_mean": float(ep["length"].float().mean()),
+        "episodes": n,
+    }
+
+
 @torch.no_grad()
 def evaluate_policy(agent: HealthAgent, *, num_envs: int | None = None, seed: int = 10_000,
                     deterministic: bool = True) -> tuple[dict[str, float], TensorDictBase]:  # fmt: skip
@@ -621,18 +686,10 @@ def evaluate_policy(agent: HealthAgent, *, num_envs: int | None = None, seed: in
     with set_exploration_type(etype):
         traj = env.rollout(cfg.env.episode_length, policy, break_when_any_done=False)
     env.close()
-    done = traj.get(("next", "done")).squeeze(-1)  # [n, L]
-    first = done.float().argmax(dim=-1)  # the rollout has episode_length steps: every env is done at least once
-    rows = torch.arange(n)
-    ep = traj.get(("next", "episode"))[rows, first]
-    ret = ep["return"].float().squeeze(-1)
-    metrics = {
-        "return_mean": float(ret.mean()),
-        "return_std": float(ret.std(unbiased=False)),
-        "violations_mean": float(ep["violations"].float().mean()),
-        "length_mean": float(ep["length"].float().mean()),
-        "episodes": n,
-    }
+    metrics = rollout_metrics(traj)
+    actions = traj.get("action").reshape(-1)
+    for i in range(NUM_ACTIONS):
+        metrics[f"action_frac_{i}"] = float((actions == i).float().mean())
     keep = [k for k in _STORE_KEYS if k != ("collector", "traj_ids")] + [("next", "heart_rate"), "kl"]
     return metrics, traj.select(*keep, strict=False)
 
@@ -795,9 +852,9 @@ def run_health(cfg: HealthConfig, run_dir: str | Path | None = None) -> dict[str
 
     agent = build_agent(cfg)
     wm = agent.world_model
-    policy = agent.policy(sample_latent=True, random_actions=True)
-    env = make_health_env(cfg, seed=cfg.run.seed, primer=policy.make_tensordict_primer())
     wc, ic, cc = cfg.world_model, cfg.imagination, cfg.collect
+    policy = agent.policy(sample_latent=True, random_actions=True, explore_probs=cc.explore_probs)
+    env = make_health_env(cfg, seed=cfg.run.seed, primer=policy.make_tensordict_primer())
     collector = Collector(env, policy, frames_per_batch=cc.frames_per_iter, total_frames=-1,
                           auto_register_policy_transforms=False)  # fmt: skip
     batches = iter(collector)
@@ -851,6 +908,7 @@ def run_health(cfg: HealthConfig, run_dir: str | Path | None = None) -> dict[str
         rows.append(row)
         logger.info("prefill: %d random frames, %d world-model steps", frames, wc.prefill_train_steps)
     policy.random_actions = False
+    policy.random_action_prob = cc.random_action_prob
 
     pbar = tqdm(range(1, cc.iterations + 1), desc=f"health[{cfg.encoder.kind}]", disable=not cfg.run.progress_bar)
     for it in pbar:

@@ -379,6 +379,14 @@ class WorldModel(nn.Module):
             ``alpha KL(sg(q) || p) + (1 - alpha) KL(q || sg(p))``.
         symlog_targets: reconstruct ``symlog(obs)`` (DreamerV3) instead of the raw observation. The reported
             ``mse_<key>`` metrics are always in raw observation units.
+        recon_norm: reconstruct per-feature standardised observations ``(obs - mean) / max(std, norm_std_floor)``
+            instead (overrides ``symlog_targets``). ``mean``/``std`` are running statistics over every training
+            batch seen (buffers ``recon_mean_<i>``, ``recon_var_<i>``, ``recon_count``, updated in train mode only,
+            saved with the state dict). Without it a feature's weight in ``L_rec`` is its squared scale: the health
+            env's heart-rate features (``HR / 200``, zone, fatigue, ...; std ~0.05-0.3) cost ~100x less than the IMU
+            (m/s^2) per unit of relative error, so the posterior stops encoding the heart rate once the KL sits
+            at its free-nats floor.
+        norm_std_floor: lower bound of the std used by ``recon_norm`` (near-constant features).
         reward_scale, continue_scale: weights of ``L_rew`` and ``L_con``.
         action_key, reward_key, terminated_key, done_key: TensorDict keys read by :meth:`loss`.
     """
@@ -402,6 +410,8 @@ class WorldModel(nn.Module):
         free_nats: float = 1.0,
         kl_balance: float | None = None,
         symlog_targets: bool = True,
+        recon_norm: bool = False,
+        norm_std_floor: float = 1e-2,
         reward_scale: float = 1.0,
         continue_scale: float = 1.0,
         action_key: NestedKey = "action",
@@ -428,6 +438,15 @@ class WorldModel(nn.Module):
         self.free_nats = free_nats
         self.kl_balance = kl_balance
         self.symlog_targets = symlog_targets
+        self.recon_norm = recon_norm
+        if norm_std_floor <= 0:
+            raise ValueError(f"norm_std_floor: expected a positive float, got {norm_std_floor}")
+        self.norm_std_floor = norm_std_floor
+        if recon_norm:
+            for i, d in enumerate(self.obs_dims.values()):
+                self.register_buffer(f"recon_mean_{i}", torch.zeros(d))
+                self.register_buffer(f"recon_var_{i}", torch.ones(d))
+            self.register_buffer("recon_count", torch.zeros((), dtype=torch.float64))
         self.reward_scale = reward_scale
         self.continue_scale = continue_scale
         self.action_key = action_key
@@ -517,6 +536,50 @@ class WorldModel(nn.Module):
         out = self.rssm.observe(embeds, seq["actions"], seq["is_first"], sample=sample)
         return out, seq
 
+    # -- reconstruction targets -----------------------------------------------------------------------------------
+    @torch.no_grad()
+    def _update_recon_stats(self, obs: Mapping[NestedKey, torch.Tensor]) -> None:
+        """Merge the batch's per-feature mean / variance into the running statistics (Chan et al.'s parallel
+        update; every key of a batch has the same number of rows)."""
+        n_old = self.recon_count.clone()
+        n_new = None
+        for i, k in enumerate(self.obs_dims):
+            x = obs[k].reshape(-1, self.obs_dims[k]).double()
+            n_new = x.shape[0]
+            m_b, v_b = x.mean(0), x.var(0, unbiased=False)
+            mean, var = getattr(self, f"recon_mean_{i}").double(), getattr(self, f"recon_var_{i}").double()
+            n = n_old + n_new
+            delta = m_b - mean
+            new_mean = mean + delta * (n_new / n)
+            new_var = (var * n_old + v_b * n_new + delta.pow(2) * n_old * n_new / n) / n
+            getattr(self, f"recon_mean_{i}").copy_(new_mean.float())
+            getattr(self, f"recon_var_{i}").copy_(new_var.float())
+        if n_new is not None:
+            self.recon_count.add_(n_new)
+
+    def _recon_stats(self, i: int) -> tuple[torch.Tensor, torch.Tensor]:
+        mean = getattr(self, f"recon_mean_{i}")
+        std = getattr(self, f"recon_var_{i}").clamp_min(0.0).sqrt().clamp_min(self.norm_std_floor)
+        return mean, std
+
+    def recon_target(self, key: NestedKey, obs: torch.Tensor) -> torch.Tensor:
+        """The decoder's target for raw observation ``obs [*B, d_key]`` (standardised, symlog or raw)."""
+        if self.recon_norm:
+            mean, std = self._recon_stats(list(self.obs_dims).index(key))
+            return (obs - mean) / std
+        return symlog(obs) if self.symlog_targets else obs
+
+    def decode(self, latent: torch.Tensor) -> dict[NestedKey, torch.Tensor]:
+        """Decoded observations in raw units: ``[*B, D + S] -> {key: [*B, d_key]}``."""
+        out = {}
+        for i, (k, pred) in enumerate(self.decoder(latent).items()):
+            if self.recon_norm:
+                mean, std = self._recon_stats(list(self.obs_dims).index(k))
+                out[k] = pred * std + mean
+            else:
+                out[k] = symexp(pred) if self.symlog_targets else pred
+        return out
+
     # -- loss -----------------------------------------------------------------------------------------------------
     def loss(
         self, batch: TensorDictBase, return_latents: bool = False
@@ -538,15 +601,21 @@ class WorldModel(nn.Module):
         :class:`~freamer_rl.world_model.imagination.RSSMWorldModelEnv`.
         """
         out, seq = self.observe(batch)
+        if self.recon_norm and self.training:
+            self._update_recon_stats(seq["obs"])
         feat = self.features(out["h"], out["z"])  # [*B, T+1, L]
         recon = self.decoder(feat)
         loss_rec = feat.new_zeros(())
         metrics: dict[str, torch.Tensor] = {}
-        for k, target in seq["obs"].items():
+        for i, (k, target) in enumerate(seq["obs"].items()):
             pred = recon[k]
-            tgt = symlog(target) if self.symlog_targets else target
+            tgt = self.recon_target(k, target)
             loss_rec = loss_rec + (pred - tgt).pow(2).sum(-1).mean()
-            raw = symexp(pred) if self.symlog_targets else pred
+            if self.recon_norm:
+                mean, std = self._recon_stats(i)
+                raw = pred * std + mean
+            else:
+                raw = symexp(pred) if self.symlog_targets else pred
             name = k if isinstance(k, str) else "_".join(k)
             metrics[f"mse_{name}"] = (raw.detach() - target).pow(2).mean()
         kl_t = self.kl(out)
