@@ -239,3 +239,31 @@ def test_fuser_output_norm_rescales_only_the_pooled_vector(batch):
     torch.testing.assert_close(fused, torch.nn.functional.layer_norm(fused_plain, (32,)), atol=1e-5, rtol=1e-5)
     assert fused.shape == (*batch, 32)
     torch.testing.assert_close(fused.std(dim=-1, unbiased=False), torch.ones(batch), atol=1e-3, rtol=0)
+
+
+@pytest.mark.parametrize("batch", [(2,), (3, 2)])
+def test_smoothness_gradient_scope(batch):
+    """L_smooth trains only the fuser by default; with smooth_fuser=None (literal Eq. 6) it reaches the encoders."""
+    from tensordict import TensorDict
+
+    from freamer_rl.losses import FreamerAuxLoss
+
+    torch.manual_seed(0)
+    fuser = FNOFuser(num_modalities=3, dim=32, modes=8)
+    encoder = torch.nn.Linear(5, 3 * 32)  # stands in for the encoders + refiners upstream of the stack
+    x = torch.randn(*batch, 5)
+    stack = encoder(x).reshape(*batch, 3, 32)
+    _, rows = fuser(stack)
+    td = TensorDict({"modal_stack": stack, "fused_modalities": rows}, batch_size=batch)
+    scoped = FreamerAuxLoss(torch.nn.ModuleDict(), lambda_fm=0, lambda_cl=0, lambda_smooth=1e-3, smooth_fuser=fuser)
+    literal = FreamerAuxLoss(torch.nn.ModuleDict(), lambda_fm=0, lambda_cl=0, lambda_smooth=1e-3)
+    loss_scoped, loss_literal = scoped(td)["loss_smooth"], literal(td)["loss_smooth"]
+    torch.testing.assert_close(loss_scoped, loss_literal)  # same value, Eq. A16 on the fuser's output rows
+    torch.testing.assert_close(loss_literal, 1e-3 * smoothness_loss(rows))
+
+    enc_grad = torch.autograd.grad(loss_scoped, encoder.weight, allow_unused=True)[0]
+    assert enc_grad is None or bool((enc_grad == 0).all())
+    fuser_grads = torch.autograd.grad(loss_scoped, [fuser.pointwise.weight, fuser.residual_scale], retain_graph=True)
+    assert all(bool(g.abs().sum() > 0) for g in fuser_grads)
+    literal_enc_grad = torch.autograd.grad(loss_literal, encoder.weight)[0]
+    assert float(literal_enc_grad.abs().sum()) > 0

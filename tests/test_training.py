@@ -126,6 +126,26 @@ def test_trainer_run_directory_and_resume(tmp_path):
         Trainer(tiny_cfg("run.total_frames=512", "model.embed_dim=16"), run)
 
 
+@pytest.mark.parametrize("into_encoders", [False, True])
+def test_smoothness_term_reaches_encoders_only_when_asked(tmp_path, into_encoders):
+    """ppo.smooth_into_encoders=false (default): L_smooth of a training minibatch trains the fuser only."""
+    trainer = Trainer(tiny_cfg(f"ppo.smooth_into_encoders={str(into_encoders).lower()}"), tmp_path / "run")
+    collector = trainer._make_collector(128)
+    data = next(iter(collector))
+    collector.shutdown()
+    mb = trainer._sequences(trainer._compute_advantage(data))
+    with set_recurrent_mode(True):
+        mb = trainer.modules.trunk(mb)
+    loss = trainer.aux_loss(mb)["loss_smooth"]
+    fuser_params = {id(p) for p in trainer.modules.fuser.parameters()}
+    upstream = [p for p in trainer.modules.trunk.parameters() if p.requires_grad and id(p) not in fuser_params]
+    grads = torch.autograd.grad(loss, list(trainer.modules.fuser.parameters()) + upstream, allow_unused=True)
+    fuser_grads, upstream_grads = grads[: len(fuser_params)], grads[len(fuser_params):]
+    reached = [g is not None and float(g.abs().sum()) > 0 for g in upstream_grads]
+    assert any(g is not None and float(g.abs().sum()) > 0 for g in fuser_grads)
+    assert any(reached) == into_encoders
+
+
 def test_frozen_encoders_are_left_out_of_training(tmp_path):
     cfg = tiny_cfg("model.freeze_encoders=[language, reward]", "run.total_frames=128")
     trainer = Trainer(cfg, tmp_path / "run")

@@ -135,6 +135,10 @@ class PPOConfig:
     lambda_fm: float = 0.1
     lambda_cl: float = 0.1
     lambda_smooth: float = 1e-3
+    # False: L_smooth (Eq. A16) trains only the FNO fuser (Layer 3); its gradient does not reach the encoders and
+    # refiners. True: the literal Eq. 6, which pulls every modality's embedding towards its neighbours' -- towards the
+    # constant mission and reward-history rows in MiniGrid, collapsing the state embedding (see losses.py)
+    smooth_into_encoders: bool = False
 
 
 @dataclass

@@ -351,6 +351,7 @@ class Trainer:
             lambda_cl=p.lambda_cl,
             lambda_smooth=p.lambda_smooth,
             noise_std=cfg.model.flow.noise_std,
+            smooth_fuser=None if p.smooth_into_encoders else self.modules.fuser,
         )
         self.params = [q for q in self.modules.actor_value.parameters() if q.requires_grad]
         # fused Adam / foreach clipping: ~4x less optimiser overhead for the ~90 small parameter tensors
