@@ -4,6 +4,7 @@ imagination throughput of the world-model env vs TorchRL's DreamerEnv at equal s
     python benchmarks/health_benchmark.py                       # full: 4 encoders x 3 seeds (the recipes' sizes)
     python benchmarks/health_benchmark.py --quick               # smoke: tiny sizes, 2 seeds, ~1-2 minutes
     python benchmarks/health_benchmark.py --encoders mlp foundation --seeds 0 1 2 collect.iterations=40
+    python benchmarks/health_benchmark.py --reuse               # finish an interrupted table; redo only the report
 
 Each (encoder, seed) is one :func:`freamer_rl.health.pipeline.run_health` with ``recipes/health/health_<encoder>.yaml``
 (plus the overrides given on the command line), in its own process, ``--workers`` at a time (one thread each).
@@ -54,17 +55,24 @@ QUICK = [
 
 def _run_job(job: dict) -> dict:
     import torch
+    import yaml
 
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING)
-    from freamer_rl.health.pipeline import load_health_config, run_health
+    from freamer_rl.health.pipeline import health_config_to_dict, load_health_config, run_health
 
     cfg = load_health_config(
         ROOT / "recipes" / "health" / f"health_{job['encoder']}.yaml",
         [*job["overrides"], f"run.seed={job['seed']}", "run.progress_bar=false", "run.threads=1"],
     )
+    run_dir = Path(job["out"]) / "runs" / f"{job['encoder']}_s{job['seed']}"
+    if job.get("reuse") and (run_dir / "summary.json").is_file() and (run_dir / "config.yaml").is_file():
+        wanted = yaml.safe_load(yaml.safe_dump(health_config_to_dict(cfg), sort_keys=False))
+        if yaml.safe_load((run_dir / "config.yaml").read_text()) == wanted:
+            logging.getLogger("health_benchmark").warning("reusing the finished run %s (same resolved config)", run_dir)
+            return json.loads((run_dir / "summary.json").read_text())
     t0 = time.perf_counter()
-    summary = run_health(cfg, Path(job["out"]) / "runs" / f"{job['encoder']}_s{job['seed']}")
+    summary = run_health(cfg, run_dir)
     summary["job_wall_s"] = time.perf_counter() - t0
     return summary
 
@@ -146,12 +154,15 @@ def write_report(results: list[dict], table: list[dict], throughput: dict | None
             f"{throughput['threads']} thread(s), {throughput['rounds']} interleaved rounds "
             "(freamer_rl.world_model.bench_imagination).",
             "",
-            "| env | steps/s | ratio vs DreamerEnv |",
-            "|---|---|---|",
+            "| env | steps/s | ratio vs DreamerEnv | ratio vs the DreamerEnv doing the same work |",
+            "|---|---|---|---|",
         ]
         ratios = throughput["median_ratio_vs_dreamer_env"]
+        equal = throughput["equal_work_ratio"]
         for k, v in med.items():
-            lines.append(f"| {k} | {v:,.0f} | {ratios.get(k, 1.0):.2f} |")
+            same = (f"{equal[k]:.2f} (vs {throughput['equal_work_pairs'][k]}, median of per-round ratios)"
+                    if k in equal else "")
+            lines.append(f"| {k} | {v:,.0f} | {ratios.get(k, 1.0):.2f} | {same} |")
     text = "\n".join(lines) + "\n"
     (out / "results.md").write_text(text)
     return text
@@ -165,14 +176,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", default=None, help="default benchmarks/results/health (--quick: .../health_quick)")
     ap.add_argument("--quick", action="store_true", help="tiny sizes and 2 seeds: a smoke test of the whole table")
     ap.add_argument("--skip-throughput", action="store_true", help="do not run the imagination throughput bench")
+    ap.add_argument("--reuse", action="store_true",
+                    help="take a finished run (summary.json) whose saved config equals the resolved one instead of "
+                         "training it again (code changes are not detected: drop --reuse after changing the pipeline)")
     ap.add_argument("overrides", nargs="*", help="dotted overrides applied to every recipe")
     args = ap.parse_args(argv)
     if args.seeds is None:
         args.seeds = [0, 1] if args.quick else [0, 1, 2]
     out = Path(args.out or ROOT / "benchmarks" / "results" / ("health_quick" if args.quick else "health"))
     overrides = [*(QUICK if args.quick else []), *args.overrides]
-    jobs = [{"encoder": e, "seed": s, "overrides": overrides, "out": str(out)} for e in args.encoders
-            for s in args.seeds]  # fmt: skip
+    jobs = [{"encoder": e, "seed": s, "overrides": overrides, "out": str(out), "reuse": args.reuse}
+            for e in args.encoders for s in args.seeds]  # fmt: skip
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(message)s")
     log = logging.getLogger("health_benchmark")
     log.info("%d runs, %d at a time -> %s", len(jobs), args.workers, out)

@@ -30,3 +30,21 @@ def test_benchmark_harness_writes_report(tmp_path):
     assert "FreamerV1" in text and "PPO-MLP" in text and "Throughput ratio" in text
     assert (tmp_path / "learning_curves.png").is_file()
     assert (tmp_path / "results.csv").read_text().count("\n") == 3
+
+
+def test_health_benchmark_report_and_reuse(tmp_path):
+    import health_benchmark
+
+    args = ["--quick", "--encoders", "mlp", "--seeds", "0", "--workers", "1", "--skip-throughput", "--out",
+            str(tmp_path)]  # fmt: skip
+    health_benchmark.main(args)
+    text = (tmp_path / "results.md").read_text()
+    assert "MLP (vanilla)" in text and "| Encoder | Reward | Violations | MSE | Horizon |" in text
+    first = (tmp_path / "results.csv").read_text()
+    summary = tmp_path / "runs" / "mlp_s0" / "summary.json"
+    stamp = summary.stat().st_mtime_ns
+    health_benchmark.main([*args, "--reuse"])  # same resolved config: the finished run is read back, not retrained
+    assert summary.stat().st_mtime_ns == stamp
+    assert (tmp_path / "results.csv").read_text() == first
+    health_benchmark.main([*args, "--reuse", "collect.iterations=2"])  # another config: trained again
+    assert summary.stat().st_mtime_ns != stamp

@@ -133,6 +133,25 @@ def test_bench_imagination_smoke():
 
     res = run(batch=4, horizon=3, rounds=1, rollouts_per_round=1)
     assert set(res["median_steps_per_s"]) == {
-        "rssm_world_model_env", "rssm_world_model_env_no_continuation", "torchrl_dreamer_env"
+        "rssm_world_model_env", "rssm_world_model_env_no_continuation", "torchrl_dreamer_env",
+        "torchrl_dreamer_env_with_continuation",
     }
     assert all(v > 0 for v in res["median_steps_per_s"].values())
+    assert set(res["equal_work_ratio"]) == {"rssm_world_model_env", "rssm_world_model_env_no_continuation"}
+    assert all(v > 0 for v in res["equal_work_ratio"].values())
+
+
+def test_bench_dreamer_continuation_writes_termination():
+    """The equal-work DreamerEnv really evaluates its continuation MLP: its rollout carries the predicted flag."""
+    from freamer_rl.world_model.bench_imagination import _ContinuationDone, build_dreamer
+
+    env, policy, seeds = build_dreamer(4, continuation=True)
+    cont = next(m for m in env.world_model.modules() if isinstance(m, _ContinuationDone))
+    with torch.no_grad():
+        torch.nn.init.constant_(cont.net[-1].bias, -5.0)  # sigmoid(-5 + small) < 0.5 -> terminated everywhere
+        for p in cont.net[-1].parameters():
+            if p.ndim > 1:
+                p.zero_()
+        traj = env.rollout(3, policy, auto_reset=False, break_when_any_done=False, tensordict=env.reset(seeds))
+    assert traj.shape == (4, 3)  # fixed-horizon imagination, as the benchmark runs it
+    assert traj["next", "terminated"].all() and traj["next", "done"].all()

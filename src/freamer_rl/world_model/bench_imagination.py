@@ -5,8 +5,11 @@ MLP of width 256, batch 64, horizon 15, the same kind of policy (an MLP of width
 samples a categorical action), untrained weights, ``torch.no_grad()``, one CPU thread. ``DreamerEnv`` is built the
 way TorchRL's own helpers build it (``RSSMPrior`` in a ``SafeModule`` + reward ``SafeModule`` in a
 ``WorldModelWrapper``); it predicts no termination. Ours is measured twice: as used (done_mode="threshold", one
-continuation-head MLP more per step) and with done_mode="never" (the same work as DreamerEnv). The three are
-interleaved round by round so that load from other processes hits them alike; the median over rounds is reported.
+continuation-head MLP more per step) and with done_mode="never" (the same work as DreamerEnv). DreamerEnv is also
+measured with a continuation MLP of the reward MLP's size added to its world model (``terminated = sigmoid(MLP) <
+0.5``, written into its step output) -- the same work as ours as used. The four are interleaved round by round so
+that load from other processes hits them alike; the median over rounds is reported, and each of ours is compared with
+the DreamerEnv doing the same work (median of the per-round ratios).
 
 Run::
 
@@ -58,12 +61,27 @@ def build_ours(batch: int) -> tuple[RSSMWorldModelEnv, ProbabilisticActor, Tenso
     return env, policy, seeds
 
 
-def build_dreamer(batch: int) -> tuple[DreamerEnv, ProbabilisticActor, TensorDict]:
+class _ContinuationDone(nn.Module):
+    """``[state; belief] -> terminated = sigmoid(MLP) < 0.5``: the work of our continuation head, for DreamerEnv."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.net = MLP(in_features=DETER + STOCH, out_features=1, num_cells=[HIDDEN, HIDDEN], activation_class=nn.ELU)
+
+    def forward(self, state: torch.Tensor, belief: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        terminated = torch.sigmoid(self.net(torch.cat([state, belief], dim=-1))) < 0.5
+        return terminated, terminated
+
+
+def build_dreamer(batch: int, continuation: bool = False) -> tuple[DreamerEnv, ProbabilisticActor, TensorDict]:
+    """TorchRL's DreamerEnv as TorchRL's helpers build it; ``continuation=True`` adds a continuation MLP of the
+    reward MLP's size to its world model (writing ``terminated``/``done``), i.e. the work of our threshold mode."""
     action_spec = OneHot(N_ACTIONS, shape=(batch, N_ACTIONS))
     prior = RSSMPrior(action_spec, hidden_dim=HIDDEN, rnn_hidden_dim=DETER, state_dim=STOCH, action_dim=N_ACTIONS)
-    transition = SafeSequential(
-        SafeModule(prior, in_keys=["state", "belief", "action"], out_keys=["_", "_", "state", "belief"])
-    )
+    modules = [SafeModule(prior, in_keys=["state", "belief", "action"], out_keys=["_", "_", "state", "belief"])]
+    if continuation:
+        modules.append(SafeModule(_ContinuationDone(), in_keys=["state", "belief"], out_keys=["terminated", "done"]))
+    transition = SafeSequential(*modules)
     reward = SafeModule(
         MLP(in_features=DETER + STOCH, out_features=1, num_cells=[HIDDEN, HIDDEN], activation_class=nn.ELU),
         in_keys=["state", "belief"],
@@ -88,19 +106,23 @@ def _rollouts_per_second(env, policy, seeds, horizon: int, n_rollouts: int, warm
     """Imagined steps/s of ``n_rollouts`` rollouts ``[batch, horizon]`` (after ``warmup`` untimed ones)."""
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         for _ in range(warmup):
-            out = env.rollout(horizon, policy, auto_reset=False, tensordict=env.reset(seeds.clone()))
+            out = env.rollout(horizon, policy, auto_reset=False, break_when_any_done=False,
+                              tensordict=env.reset(seeds.clone()))
             if tuple(out.shape) != (seeds.shape[0], horizon):
                 raise RuntimeError(f"rollout shape {tuple(out.shape)} != {(seeds.shape[0], horizon)}")
         t0 = time.perf_counter()
         for _ in range(n_rollouts):
-            env.rollout(horizon, policy, auto_reset=False, tensordict=env.reset(seeds.clone()))
+            env.rollout(horizon, policy, auto_reset=False, break_when_any_done=False,
+                              tensordict=env.reset(seeds.clone()))
         dt = time.perf_counter() - t0
     return n_rollouts * seeds.shape[0] * horizon / dt
 
 
 def run(batch: int = 64, horizon: int = 15, rounds: int = 20, rollouts_per_round: int = 2, threads: int = 1) -> dict:
-    """Measure the three configurations, interleaved round by round (load from other processes hits them alike).
-    Returns the median (and mean) over rounds of imagined steps/s."""
+    """Measure the four configurations, interleaved round by round (load from other processes hits them alike).
+    Returns the median (and mean) over rounds of imagined steps/s, the ratios to plain DreamerEnv, and the
+    equal-work ratios (ours as used vs DreamerEnv with a continuation MLP; ours without continuation vs plain
+    DreamerEnv), each the median of the per-round ratios."""
     torch.set_num_threads(threads)
     torch.manual_seed(0)
     ours_env, ours_policy, ours_seeds = build_ours(batch)
@@ -110,6 +132,7 @@ def run(batch: int = 64, horizon: int = 15, rounds: int = 20, rollouts_per_round
         "rssm_world_model_env": (ours_env, ours_policy, ours_seeds),
         "rssm_world_model_env_no_continuation": (ours_never, ours_policy, ours_seeds),
         "torchrl_dreamer_env": build_dreamer(batch),
+        "torchrl_dreamer_env_with_continuation": build_dreamer(batch, continuation=True),
     }
     for cfg in configs.values():
         _rollouts_per_second(*cfg, horizon, 1, warmup=2)
@@ -120,6 +143,13 @@ def run(batch: int = 64, horizon: int = 15, rounds: int = 20, rollouts_per_round
     median = {k: float(torch.tensor(v).median()) for k, v in res.items()}
     mean = {k: sum(v) / len(v) for k, v in res.items()}
     ref = median["torchrl_dreamer_env"]
+    # paired per round: ours vs the DreamerEnv doing the same work (median of the per-round ratios)
+    pairs = {"rssm_world_model_env": "torchrl_dreamer_env_with_continuation",
+             "rssm_world_model_env_no_continuation": "torchrl_dreamer_env"}
+    equal_work = {
+        ours: round(float(torch.tensor([a / b for a, b in zip(res[ours], res[theirs])]).median()), 3)
+        for ours, theirs in pairs.items()
+    }
     return {
         "batch": batch,
         "horizon": horizon,
@@ -129,6 +159,8 @@ def run(batch: int = 64, horizon: int = 15, rounds: int = 20, rollouts_per_round
         "median_steps_per_s": {k: round(v, 1) for k, v in median.items()},
         "mean_steps_per_s": {k: round(v, 1) for k, v in mean.items()},
         "median_ratio_vs_dreamer_env": {k: round(v / ref, 3) for k, v in median.items() if k != "torchrl_dreamer_env"},
+        "equal_work_pairs": pairs,
+        "equal_work_ratio": equal_work,
     }
 
 

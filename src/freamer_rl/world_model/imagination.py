@@ -129,14 +129,15 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
                 f"RSSMWorldModelEnv.reset: expected {self.deter_key!r} [..., {self.world_model.deter_dim}] and "
                 f"{self.stoch_key!r} [..., {self.world_model.stoch_dim}], got {tuple(h.shape)} and {tuple(z.shape)}"
             )
-        return self._make_td(h, z, None, torch.zeros(*tensordict.batch_size, 1, dtype=torch.bool, device=h.device),
+        return self._make_td(h, z, torch.cat([h, z], dim=-1), None,
+                             torch.zeros(*tensordict.batch_size, 1, dtype=torch.bool, device=h.device),
                              tensordict.batch_size)
 
-    def _make_td(self, h, z, reward, terminated, batch_size) -> TensorDict:
+    def _make_td(self, h, z, latent, reward, terminated, batch_size) -> TensorDict:
         src = {
             self.deter_key: h,
             self.stoch_key: z,
-            self.latent_key: torch.cat([h, z], dim=-1),
+            self.latent_key: latent,
             "done": terminated,
             "terminated": terminated,
             "truncated": torch.zeros_like(terminated),
@@ -161,7 +162,7 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
                 terminated = cont < self.continue_threshold
             else:
                 terminated = torch.bernoulli(1.0 - cont).bool()
-        return self._make_td(h, z, reward, terminated, tensordict.batch_size)
+        return self._make_td(h, z, feat, reward, terminated, tensordict.batch_size)
 
     def maybe_reset(self, tensordict: TensorDictBase) -> TensorDictBase:
         """No-op: imagination never resets mid-rollout (there is no real initial state to go back to)."""
