@@ -616,7 +616,8 @@ def make_health_env(
         seed: seeds the env's generator (``None`` draws one from torch's global generator).
         reward_weights: ``(w_safe, w_target, w_fatigue)`` of Eq. A11, default ``(2.0, 1.0, 0.5)``.
         device: device of the env's tensors.
-        rate_hz: steps per second (the 100 Hz data is windowed; 1 Hz default, 10 Hz for finer control).
+        rate_hz: steps per second (the 100 Hz data is windowed; 1 Hz default, 10 Hz for finer control; the
+            health recipes use 0.2 Hz so that a 15-step imagination spans the heart-rate dynamics).
         dynamics: :class:`HealthDynamics` constants.
 
     Raises:

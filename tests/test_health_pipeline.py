@@ -230,7 +230,8 @@ def test_run_health_writes_outputs(tiny_run):
 
 def test_anomaly_report_writes_png(tiny_run, tmp_path):
     run_dir, _ = tiny_run
-    hours = 100 / 3600  # 100 steps at 1 Hz (longer than the 48-step training episodes)
+    rate_hz = load_agent(run_dir).cfg.env.rate_hz
+    hours = 100 / 3600 / rate_hz  # 100 steps (longer than the 48-step training episodes)
     out = anomaly_report(run_dir / "checkpoint.pt", tmp_path, hours=hours, warmup=5, progress_bar=False)
     png = tmp_path / "anomaly_timeline.png"
     assert png.is_file() and png.stat().st_size > 10_000
