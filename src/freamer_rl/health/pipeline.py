@@ -979,8 +979,8 @@ def record_episode(
     The same computation as :class:`HealthPolicy` (posterior means fed forward, the mode of the policy when
     ``deterministic``), written as a lean tensor loop around the base env (a TransformedEnv step costs several
     times more, which matters for a 48-hour scenario: 34,560 steps at 0.2 Hz, 172,800 at 1 Hz). The env's
-    ``episode_length`` is set to ``max(steps, env.episode_length)``; a termination (heart rate >= 200 bpm) resets the env and the filter and
-    the recording goes on.
+    ``episode_length`` is set to ``max(steps, env.episode_length)``; a termination (heart rate >= 200 bpm) resets
+    the env and the filter and the recording goes on.
 
     Returns numpy arrays of length ``steps``, element ``t`` describing step ``t``: ``heart_rate`` (bpm, observed
     at ``t``), ``activity``, ``action``, ``kl`` (``KL(q || p)`` of the posterior after observation ``t``, J.5),
@@ -1054,8 +1054,8 @@ def anomaly_report(
     The scenario lasts ``hours`` at the env's step rate (``env.rate_hz``; 48 h at the recipes' 0.2 Hz = 34,560
     steps, at 1 Hz 172,800; roughly 1.5-8 ms a step on one CPU core, the foundation encoder being the slowest) and is
     recorded by :func:`record_episode` (``episode_length`` set to the whole scenario). The per-step ``KL(q || p)``
-    of the online posterior (J.5) goes through :func:`~freamer_rl.world_model.anomaly.detect_anomalies`: a step is flagged when ``KL > running mean +
-    k_sigma running std`` (statistics before the step, Welford or EMA with ``momentum``; none in the first
+    of the online posterior (J.5) goes through :func:`~freamer_rl.world_model.anomaly.detect_anomalies`: a step is
+    flagged when ``KL > running mean + k_sigma running std`` (statistics before the step, Welford or EMA with ``momentum``; none in the first
     ``warmup`` steps).
 
     Writes into ``run_dir``: ``anomaly_timeline.png`` (heart rate with zones, the agent's decisions, KL with flags
