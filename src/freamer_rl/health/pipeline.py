@@ -1055,8 +1055,8 @@ def anomaly_report(
     steps, at 1 Hz 172,800; roughly 1.5-8 ms a step on one CPU core, the foundation encoder being the slowest) and is
     recorded by :func:`record_episode` (``episode_length`` set to the whole scenario). The per-step ``KL(q || p)``
     of the online posterior (J.5) goes through :func:`~freamer_rl.world_model.anomaly.detect_anomalies`: a step is
-    flagged when ``KL > running mean + k_sigma running std`` (statistics before the step, Welford or EMA with ``momentum``; none in the first
-    ``warmup`` steps).
+    flagged when ``KL > running mean + k_sigma running std`` (statistics before the step, Welford or EMA with
+    ``momentum``; none in the first ``warmup`` steps).
 
     Writes into ``run_dir``: ``anomaly_timeline.png`` (heart rate with zones, the agent's decisions, KL with flags
     and threshold; :func:`~freamer_rl.world_model.anomaly.plot_anomaly_timeline`), ``anomaly_episode.npz`` (the
