@@ -562,23 +562,28 @@ class WorldModel(nn.Module):
         std = getattr(self, f"recon_var_{i}").clamp_min(0.0).sqrt().clamp_min(self.norm_std_floor)
         return mean, std
 
-    def recon_target(self, key: NestedKey, obs: torch.Tensor) -> torch.Tensor:
-        """The decoder's target for raw observation ``obs [*B, d_key]`` (standardised, symlog or raw)."""
+    def _to_target(self, i: int, obs: torch.Tensor) -> torch.Tensor:
+        """Raw observation of the ``i``-th key -> the decoder's target (standardised, symlog or raw)."""
         if self.recon_norm:
-            mean, std = self._recon_stats(list(self.obs_dims).index(key))
+            mean, std = self._recon_stats(i)
             return (obs - mean) / std
         return symlog(obs) if self.symlog_targets else obs
 
+    def _from_target(self, i: int, pred: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`_to_target`: a decoder output of the ``i``-th key in raw observation units."""
+        if self.recon_norm:
+            mean, std = self._recon_stats(i)
+            return pred * std + mean
+        return symexp(pred) if self.symlog_targets else pred
+
+    def recon_target(self, key: NestedKey, obs: torch.Tensor) -> torch.Tensor:
+        """The decoder's target for raw observation ``obs [*B, d_key]`` (standardised, symlog or raw)."""
+        return self._to_target(list(self.obs_dims).index(key), obs)
+
     def decode(self, latent: torch.Tensor) -> dict[NestedKey, torch.Tensor]:
         """Decoded observations in raw units: ``[*B, D + S] -> {key: [*B, d_key]}``."""
-        out = {}
-        for i, (k, pred) in enumerate(self.decoder(latent).items()):
-            if self.recon_norm:
-                mean, std = self._recon_stats(list(self.obs_dims).index(k))
-                out[k] = pred * std + mean
-            else:
-                out[k] = symexp(pred) if self.symlog_targets else pred
-        return out
+        recon = self.decoder(latent)
+        return {k: self._from_target(i, recon[k]) for i, k in enumerate(self.obs_dims)}
 
     # -- loss -----------------------------------------------------------------------------------------------------
     def loss(
@@ -609,13 +614,8 @@ class WorldModel(nn.Module):
         metrics: dict[str, torch.Tensor] = {}
         for i, (k, target) in enumerate(seq["obs"].items()):
             pred = recon[k]
-            tgt = self.recon_target(k, target)
-            loss_rec = loss_rec + (pred - tgt).pow(2).sum(-1).mean()
-            if self.recon_norm:
-                mean, std = self._recon_stats(i)
-                raw = pred * std + mean
-            else:
-                raw = symexp(pred) if self.symlog_targets else pred
+            loss_rec = loss_rec + (pred - self._to_target(i, target)).pow(2).sum(-1).mean()
+            raw = self._from_target(i, pred)
             name = k if isinstance(k, str) else "_".join(k)
             metrics[f"mse_{name}"] = (raw.detach() - target).pow(2).mean()
         kl_t = self.kl(out)
