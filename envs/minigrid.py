@@ -38,7 +38,7 @@ Batched use needs picklable factories (``ParallelEnv`` spawns workers)::
 
     import functools
     from torchrl.envs import EnvCreator, ParallelEnv
-    from envs.minigrid import make_minigrid_env
+    from freamer_rl_envs.minigrid import make_minigrid_env
 
     if __name__ == "__main__":
         env = ParallelEnv(2, EnvCreator(functools.partial(make_minigrid_env, "MiniGrid-DoorKey-5x5-v0")))

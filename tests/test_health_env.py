@@ -9,7 +9,7 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs, step_mdp
 
-from envs.health import (
+from freamer_rl_envs.health import (
     ALERT,
     CHANGE,
     CHANGE_TO,

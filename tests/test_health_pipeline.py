@@ -45,7 +45,7 @@ TINY = [
 def health_adapter(monkeypatch):
     """Use the registered ``health`` entry point; until the project is reinstalled with it, register it here."""
     if "health" not in env_registry.available_adapters():
-        from envs.health import make_health_env as factory
+        from freamer_rl_envs.health import make_health_env as factory
 
         orig = env_registry.get_env_factory
         monkeypatch.setattr(env_registry, "get_env_factory", lambda a: factory if a == "health" else orig(a))
@@ -189,7 +189,7 @@ def test_imagination_horizon_definition():
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     if "health" not in env_registry.available_adapters():
-        from envs.health import make_health_env as factory
+        from freamer_rl_envs.health import make_health_env as factory
 
         orig = env_registry.get_env_factory
         env_registry.get_env_factory = lambda a: factory if a == "health" else orig(a)

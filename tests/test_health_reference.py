@@ -25,7 +25,7 @@ BATCH_SHAPES = [(), (2,), (3, 2)]
 @pytest.fixture(autouse=True)
 def health_adapter(monkeypatch):
     if "health" not in env_registry.available_adapters():
-        from envs.health import make_health_env as factory
+        from freamer_rl_envs.health import make_health_env as factory
 
         orig = env_registry.get_env_factory
         monkeypatch.setattr(env_registry, "get_env_factory", lambda a: factory if a == "health" else orig(a))
@@ -38,7 +38,7 @@ def tiny_cfg():
 
 
 def test_action_names_match_env():
-    from envs.health import HEALTH_ACTIONS
+    from freamer_rl_envs.health import HEALTH_ACTIONS
 
     assert ACTION_NAMES == HEALTH_ACTIONS
 

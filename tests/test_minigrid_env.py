@@ -12,7 +12,7 @@ from tensordict import TensorDict
 from torchrl.envs import EnvCreator, InitTracker, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-from envs.minigrid import MINIGRID_VOCAB, MiniGridEnv, make_minigrid_env
+from freamer_rl_envs.minigrid import MINIGRID_VOCAB, MiniGridEnv, make_minigrid_env
 from freamer_rl.text import PAD_ID, UNK_ID, WordTokenizer
 
 EMPTY = "MiniGrid-Empty-5x5-v0"

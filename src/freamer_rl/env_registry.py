@@ -1,7 +1,7 @@
 """Find environment adapters through the ``freamer_rl.envs`` entry-point group.
 
 The library never imports the top-level ``envs`` package: adapters register themselves in ``pyproject.toml``
-(``minigrid = "envs.minigrid:make_minigrid_env"``) and any third-party package can add its own.
+(``minigrid = "freamer_rl_envs.minigrid:make_minigrid_env"``) and any third-party package can add its own.
 An adapter is a callable ``factory(env_id, *, seed=None, **options) -> torchrl.envs.EnvBase``.
 """
 

@@ -116,7 +116,7 @@ _STATE = "wm_filter"  # root of the policy's recurrent state keys in the real en
 # ----------------------------------------------------------------------------------------------------------------------
 @dataclass
 class HealthEnvConfig:
-    """Real health env (``envs.health.make_health_env`` through the ``health`` adapter entry point)."""
+    """Real health env (``freamer_rl_envs.health.make_health_env`` through the ``health`` adapter entry point)."""
 
     adapter: str = "health"
     id: str = "pamap2-health"

@@ -35,7 +35,7 @@ __all__ = [
     "evaluate_reference",
 ]
 
-#: action names of the health env, in index order (``envs.health.HEALTH_ACTIONS``; the library does not import envs)
+#: action names of the health env, in index order (``freamer_rl_envs.health.HEALTH_ACTIONS``; the library does not import envs)
 ACTION_NAMES: tuple[str, ...] = ("continue", "rest", "increase", "change", "alert")
 REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold")
 
