@@ -203,7 +203,8 @@ def test_recurrent_mode_equals_stepping(batch):
     garbage.select(len(batch), 0).copy_(memory0)
     td = TensorDict({"obs_embed": x, "mem": garbage, "start": is_init}, batch_size=(*batch, T))
     with set_recurrent_mode(True):
-        module(td)
+        # recurrent mode needs >= 2 batch dims: one unbatched trajectory is passed as [1, T]
+        td = module(td) if batch else module(td.unsqueeze(0)).squeeze(0)
     torch.testing.assert_close(td["h"], torch.stack(outs, dim=len(batch)), atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(td["next", "mem"], torch.stack(nexts, dim=len(batch)), atol=1e-5, rtol=1e-5)
     # and outside recurrent mode the same tensordict is T independent steps from the stored roots
@@ -215,12 +216,53 @@ def test_recurrent_mode_equals_stepping(batch):
 def test_recurrent_mode_needs_time_dim_and_default_mode():
     module = _module()
     td = TensorDict({"fused": torch.randn(D), ("dnc", "memory"): torch.zeros(N, W), "is_init": torch.ones(1).bool()})
-    with set_recurrent_mode(True), pytest.raises(ValueError, match="at least one batch dim"):
+    with set_recurrent_mode(True), pytest.raises(ValueError, match=r"needs \[B, T\] sequences"):
         module(td)
     assert not module.recurrent_mode
     assert _module(default_recurrent_mode=True).recurrent_mode
     with set_recurrent_mode(False):
         assert not _module(default_recurrent_mode=True).recurrent_mode
+
+
+def test_recurrent_mode_refuses_a_flat_batch():
+    """A flattened (possibly shuffled) 1-D minibatch must not be threaded through time as one sequence."""
+    module = _module()
+    T = 6
+    td = TensorDict(
+        {"fused": torch.randn(T, D), ("dnc", "memory"): torch.zeros(T, N, W), "is_init": torch.zeros(T, 1).bool()},
+        batch_size=(T,),
+    )
+    with set_recurrent_mode(True), pytest.raises(ValueError) as err:
+        module(td)
+    msg = str(err.value)
+    assert "\n" not in msg
+    for part in ("[B, T]", "(6,)", "shuffled", "split_sequences", "SliceSampler", "Sequences for stateful layers",
+                 "unsqueeze(0)"):
+        assert part in msg, part
+    with set_recurrent_mode(True):  # the advertised fix works
+        out = module(td.unsqueeze(0))
+    assert out["hidden"].shape == (1, T, 4)
+    module(td)  # step mode treats the 1-D batch as T independent steps, as before
+    assert td["hidden"].shape == (T, 4)
+
+
+def test_non_finite_input_raises_except_under_vmap():
+    dnc = DNCMemory(D, N, W)
+    x = torch.randn(3, D)
+    x[1, 2] = float("nan")
+    with pytest.raises(ValueError, match=r"DNCMemory input: 1 non-finite values \(NaN/Inf\)"):
+        dnc.step(x, dnc.initial_memory((3,)))
+    out, _ = torch.vmap(dnc.step)(x, dnc.initial_memory((3,)))  # maths only under vmap: NaN propagates to its row
+    assert torch.isnan(out[1]).all() and torch.isfinite(out[[0, 2]]).all()
+    module = _module()
+    td = TensorDict(
+        {"fused": x.unsqueeze(0), ("dnc", "memory"): torch.zeros(1, 3, N, W), "is_init": torch.zeros(1, 3, 1).bool()},
+        batch_size=(1, 3),
+    )
+    with set_recurrent_mode(True), pytest.raises(ValueError, match="DNCModule 'fused': 1 non-finite"):
+        module(td)
+    with pytest.raises(ValueError, match="DNCMemory input"):  # step mode
+        module(td)
 
 
 def test_gradients_flow_through_time():
@@ -306,9 +348,9 @@ def test_primer_rollout_carries_memory():
         expected = torch.zeros(N, W) if is_init[t + 1] else nxt[t]
         torch.testing.assert_close(root[t + 1], expected)
     # the stored trajectory replays exactly in recurrent mode (what the PPO loss will see)
-    replay = rollout.exclude("hidden", ("next", "dnc")).clone()
+    replay = rollout.exclude("hidden", ("next", "dnc")).clone().unsqueeze(0)  # one trajectory as [1, T]
     with torch.no_grad(), set_recurrent_mode(True):
-        module(replay)
+        replay = module(replay).squeeze(0)
     torch.testing.assert_close(replay["hidden"], rollout["hidden"], atol=1e-5, rtol=1e-5)
     torch.testing.assert_close(replay["next", "dnc", "memory"], nxt, atol=1e-5, rtol=1e-5)
 

@@ -54,6 +54,17 @@ def test_reward_encoder_checks_history():
         RewardEncoder(history=8, out_dim=D)(torch.randn(2, 5))
 
 
+def test_reward_encoder_rejects_non_finite_except_under_vmap():
+    enc = RewardEncoder(history=8, out_dim=D, channels=4)
+    r = torch.randn(3, 8)
+    r[0, 1], r[2, 0], r[2, 7] = float("nan"), float("inf"), -float("inf")
+    with pytest.raises(ValueError, match=r"RewardEncoder reward_history: 3 non-finite values \(NaN/Inf\)") as err:
+        enc(r)
+    assert "\n" not in str(err.value) and "nan_to_num" in str(err.value)
+    out = torch.vmap(enc)(r)  # maths only: the row with the NaN is NaN, the check is not run
+    assert torch.isnan(out[0]).all() and torch.isfinite(out[1]).all()
+
+
 # -------------------------------------------------------------------------------------------------- language
 def _tokens(batch, length=8, vocab=20):
     t = torch.randint(1, vocab, (*batch, length))
@@ -134,6 +145,31 @@ def test_vision_encoder_cnn_shapes_and_grads(batch):
 def test_vision_encoder_needs_token_dim():
     with pytest.raises(TypeError, match="token_dim"):
         VisionEncoder(torch.nn.Identity(), out_dim=D)
+
+
+def test_vision_encoder_rejects_non_finite_pixels_and_tokens():
+    torch.manual_seed(0)
+    enc = VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, num_slots=4).eval()  # eval: no random slot init
+    px = torch.rand(2, 16, 16, 3) * 255
+    px[1, 3, 4, 0] = float("nan")
+    with pytest.raises(ValueError, match="CNNBackbone pixels: 1 non-finite values"):
+        enc(px)
+    with pytest.raises(ValueError, match="CNNBackbone pixels: 1 non-finite values"):
+        enc.backbone(px)
+    out = torch.vmap(enc)(px)  # no check under vmap; the NaN stays in its own sample
+    assert torch.isfinite(out[0]).all() and torch.isnan(out[1]).any()
+
+    class NaNTokens(torch.nn.Module):  # a backbone whose features are non-finite for one token
+        token_dim = 8
+
+        def forward(self, pixels):
+            tokens = torch.ones(pixels.shape[0], 5, 8)
+            tokens[-1, 2, 0] = float("nan")
+            return tokens
+
+    enc2 = VisionEncoder(NaNTokens(), out_dim=D, num_slots=3)
+    with pytest.raises(ValueError, match=r"VisionEncoder tokens \(from NaNTokens\): 1 non-finite"):
+        enc2(torch.zeros(2, 4, 4, 3, dtype=torch.uint8))
 
 
 def test_vision_encoder_blank_frames_are_finite():
@@ -258,6 +294,13 @@ def test_clip_backbone_tokens(random_clip, batch):
     assert tokens.shape == (*batch, 49, 768) and tokens.dtype == torch.float32
     assert not tokens.requires_grad and torch.isfinite(tokens).all()
     assert random_clip.token_dim == 768 and random_clip.num_tokens == 49
+
+
+def test_clip_backbone_rejects_non_finite_pixels(random_clip):
+    px = torch.full((2, 32, 32, 3), 100.0)
+    px[0, 1, 1, 1] = float("nan")
+    with pytest.raises(ValueError, match="ClipBackbone pixels: 1 non-finite values"):
+        random_clip(px)
 
 
 def test_clip_backbone_is_frozen(random_clip):

@@ -139,6 +139,17 @@ def test_gate_gradient_and_errors():
         ref.cfm_loss(torch.randn(2, 4), noise_std=-1.0)
 
 
+def test_non_finite_input_raises_except_under_vmap():
+    ref = FlowMatchingRefiner(4, hidden=8)
+    e = torch.randn(3, 4)
+    e[2, 1] = float("inf")
+    with pytest.raises(ValueError, match=r"FlowMatchingRefiner input: 1 non-finite values \(NaN/Inf\)"):
+        ref(e)
+    out = torch.vmap(ref)(e)  # maths only under vmap
+    assert torch.isfinite(out[:2]).all() and not torch.isfinite(out[2]).all()
+    torch.testing.assert_close(out[:2], ref(e[:2]), atol=1e-6, rtol=1e-5)
+
+
 def test_scalar_time_fast_path_matches_concatenated_input():
     torch.manual_seed(0)
     ref = FlowMatchingRefiner(16, hidden=32)

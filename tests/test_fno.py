@@ -140,6 +140,16 @@ def test_fno_fuser_shapes_and_equation(batch):
         fuser(torch.randn(*batch, 3, d))
 
 
+def test_fno_fuser_rejects_non_finite_except_under_vmap():
+    fuser = FNOFuser(3, 16, modes=4)
+    e = torch.randn(2, 3, 16)
+    e[1, 0, 5] = float("nan")
+    with pytest.raises(ValueError, match=r"FNOFuser modal_stack: 1 non-finite values \(NaN/Inf\)"):
+        fuser(e)
+    fused, _ = torch.vmap(fuser)(e)  # maths only under vmap
+    assert torch.isfinite(fused[0]).all() and torch.isnan(fused[1]).any()
+
+
 def test_fno_fuser_gradients_and_defaults():
     fuser = FNOFuser(4, 128)  # Table A20 defaults: K = 16, residual scale 0.1
     assert fuser.spectral.modes == 16
@@ -209,6 +219,18 @@ def test_state_encoder_validation():
         enc(grid.float(), direction)
     with pytest.raises(ValueError, match="direction must have shape"):
         enc(grid, torch.zeros(3, dtype=torch.long))
+
+
+def test_state_encoder_index_ranges_are_checked_only_in_eager_mode():
+    enc = StateFNOEncoder(out_dim=16, channels=8, modes=6)
+    grid, direction = _random_grid((2,)), torch.randint(0, 4, (2,))
+    # under vmap the encoder is sync-free: no range check, and the result equals the eager batched forward
+    torch.testing.assert_close(torch.vmap(enc)(grid, direction), enc(grid, direction), atol=1e-5, rtol=1e-5)
+    bad = grid.clone()
+    bad[0, 3, 3, 1] = 7  # colour index 7 (>= 6) lands on the first state embedding row: wrong, but no sync
+    with pytest.raises(ValueError, match="colour index"):
+        enc(bad, direction)
+    assert torch.vmap(enc)(bad, direction).shape == (2, 16)
 
 
 @pytest.mark.parametrize("n, modes", [(49, 12), (49, 25), (16, 9), (128, 16), (7, 4)])

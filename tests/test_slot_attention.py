@@ -96,6 +96,17 @@ def test_nan_fallback_is_counted_and_logged(caplog):
     assert torch.isfinite(sa(x)[1]).all()
 
 
+def test_nan_fallback_is_not_counted_under_vmap():
+    sa = _sa().eval()
+    x = torch.randn(2, N, DIN)
+    x[0, 3] = float("nan")
+    out = torch.vmap(sa)(x)  # the fallback still substitutes; the count (a host sync) is skipped
+    assert sa.nan_fallbacks == 0
+    torch.testing.assert_close(out[1], sa(x[1:])[0], atol=1e-5, rtol=1e-5)
+    sa(x)
+    assert sa.nan_fallbacks == 1 + 2 * N
+
+
 def test_nan_fallback_substitutes_uniform():
     sa = _sa(eval_init="fixed").eval()
     x = torch.randn(1, N, DIN)

@@ -159,6 +159,8 @@ class ClipBackbone(nn.Module):
     forward(pixels ``[*B, H, W, 3]`` uint8, or float on the 0-255 scale, channels-last, any size) -> tokens
     ``[*B, num_tokens, token_dim]`` float32, computed under ``torch.no_grad()`` with the tower in eval mode:
     resize (shorter side to ``image_size``, bicubic, antialiased) + centre crop, CLIP mean/std normalisation.
+    Float pixels holding NaN/Inf raise ``ValueError`` in eager mode; the forward has no host sync, so it also runs
+    under ``torch.vmap``/``torch.compile`` (the check is then skipped; see :mod:`freamer_rl.layers.checks`).
     """
 
     def __init__(

@@ -17,7 +17,9 @@ memory (that gives uniform weights). The write vector is ``a = tanh(.)`` in ``[-
 erasing grow it by up to ``g w(i)`` per step. The new memory is therefore clamped to ``[-memory_clip, memory_clip]``
 (default 10, far above the ``|M| <= 1`` range of a few writes). Each clamped entry is counted in ``clip_events`` and
 logged (rate-limited ``logger.warning``); counting is skipped inside ``torch.func`` transforms / ``torch.compile``
-(the clamp still applies). Non-finite *inputs* still propagate (they are a bug upstream, not a memory failure).
+(the clamp still applies). A non-finite input ``x`` raises ``ValueError`` in eager mode (it is a bug upstream, and
+the memory would carry the NaN into every later step of the episode); under transforms the check is skipped and
+the maths is unchanged (see :mod:`freamer_rl.layers.checks`).
 """
 
 from __future__ import annotations
@@ -31,18 +33,13 @@ from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
 
+from freamer_rl.layers.checks import check_finite, value_checks_active
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["DNCMemory", "DNCModule"]
 
 _EPS = 1e-6
-
-
-def _is_transformed(t: torch.Tensor) -> bool:
-    """True inside torch.func transforms (vmap/grad) or torch.compile, where Python-side counting is impossible."""
-    if torch.compiler.is_compiling():
-        return True
-    return bool(torch._C._functorch.is_functorch_wrapped_tensor(t))
 
 
 def _safe_norm(v: torch.Tensor) -> torch.Tensor:
@@ -170,6 +167,7 @@ class DNCMemory(nn.Module):
             raise ValueError(
                 f"DNC input batch dims {tuple(x.shape[:-1])} and memory batch dims {tuple(memory.shape[:-2])} differ"
             )
+        check_finite(x, "DNCMemory input")
         r, new_memory = self.memory_step(self.interface_vectors(x), memory)
         return self.output(x, r), new_memory
 
@@ -195,7 +193,7 @@ class DNCMemory(nn.Module):
         clip = self.memory_clip
         if clip is None:
             return memory
-        if not _is_transformed(memory):
+        if value_checks_active(memory):  # counting is a host sync: eager mode only
             n = int((memory.detach().abs() > clip).sum())
             if n:
                 self.clip_events += n
@@ -234,9 +232,13 @@ class DNCModule(TensorDictModuleBase):
 
     - step mode (default): every leading dim is batch; the memory is zeroed where ``is_init`` is True, then one
       step is taken.
-    - recurrent mode: the tensordict has batch ``[*B, T]`` (time = last batch dim). Starting from
+    - recurrent mode: the tensordict has batch ``[*B, T]`` with at least two batch dims (time = last batch dim;
+      a 1-D tensordict raises ``ValueError``, since a flattened shuffled minibatch looks the same). Starting from
       ``memory[..., 0, :, :]`` the module loops over ``T``, zeroing the running memory wherever ``is_init[..., t]``
       is True, and writes ``out_key`` and ``("next", *memory_key)`` for every ``t``. Gradients flow through time.
+
+    Both modes are free of host syncs under ``torch.vmap`` (TorchRL's ``GAE(value_network=...)`` default) and
+    ``torch.compile``; in eager mode a NaN/Inf in ``in_key`` raises ``ValueError`` and memory clamps are counted.
 
     ``make_tensordict_primer()`` declares the memory to the environment (``TransformedEnv(env,
     Compose(InitTracker(), module.make_tensordict_primer()))``, or ``Collector(...,
@@ -342,30 +344,43 @@ class DNCModule(TensorDictModuleBase):
             memory = torch.where(is_init[..., None, None], torch.zeros_like(memory), memory)
             out, new_memory = self.dnc.step(x, memory)
         else:
-            tdim = tensordict.batch_dims - 1
-            if tdim < 0:
-                raise ValueError(
-                    "DNCModule in recurrent mode needs a tensordict with at least one batch dim (time, last); got a "
-                    "0-d tensordict"
-                )
-            if x.shape[:-1] != tensordict.batch_size:
-                raise ValueError(
-                    f"DNCModule in recurrent mode expects {self.in_key!r} of shape [*B, T, D_in] with [*B, T] the "
-                    f"tensordict batch size {tuple(tensordict.batch_size)}; got {tuple(x.shape)}"
-                )
-            m = memory.select(tdim, 0)
-            # Interface vectors and outputs do not depend on the memory: compute them for all T at once and
-            # loop over time only for addressing, write and read.
-            controls = self.dnc.interface_vectors(x)
-            reads, mems = [], []
-            for t in range(x.shape[tdim]):
-                reset = is_init.select(tdim, t)[..., None, None]
-                m = torch.where(reset, torch.zeros_like(m), m)
-                r, m = self.dnc.memory_step({k: v.select(tdim, t) for k, v in controls.items()}, m)
-                reads.append(r)
-                mems.append(m)
-            out = self.dnc.output(x, torch.stack(reads, dim=tdim))
-            new_memory = torch.stack(mems, dim=tdim)
+            out, new_memory = self._forward_sequence(tensordict, x, memory, is_init)
         tensordict.set(self.out_key, out)
         tensordict.set(self.next_memory_key, new_memory)
         return tensordict
+
+    def _forward_sequence(
+        self, tensordict: TensorDictBase, x: torch.Tensor, memory: torch.Tensor, is_init: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Recurrent mode: ``x [*B, T, D_in]``, ``memory [*B, T, N, W]`` (only ``t = 0`` is read), ``is_init [*B, T]``
+        -> ``(e_aug [*B, T, D_out], M' [*B, T, N, W])``, looping over ``T`` from the stored state at ``t = 0``."""
+        if tensordict.batch_dims < 2:
+            # A 1-D batch is either one trajectory or a flattened (often shuffled) minibatch of unrelated steps;
+            # threading memory through the latter is silently wrong, so refuse to guess.
+            raise ValueError(
+                f"DNCModule in recurrent mode needs [B, T] sequences (time = last batch dim); got a tensordict with "
+                f"batch size {tuple(tensordict.batch_size)}: a 1-D batch cannot be told apart from shuffled steps. "
+                "Sample whole sequences (e.g. freamer_rl.sequences.split_sequences(data, seq_len), or a TorchRL "
+                "replay buffer with a SliceSampler; README section 'Sequences for stateful layers'), or call it on "
+                "td.unsqueeze(0) for one trajectory"
+            )
+        tdim = tensordict.batch_dims - 1
+        if x.shape[:-1] != tensordict.batch_size:
+            raise ValueError(
+                f"DNCModule in recurrent mode expects {self.in_key!r} of shape [*B, T, D_in] with [*B, T] the "
+                f"tensordict batch size {tuple(tensordict.batch_size)}; got {tuple(x.shape)}"
+            )
+        check_finite(x, f"DNCModule {self.in_key!r}")
+        m = memory.select(tdim, 0)
+        # Interface vectors and outputs do not depend on the memory: compute them for all T at once and
+        # loop over time only for addressing, write and read.
+        controls = self.dnc.interface_vectors(x)
+        reads, mems = [], []
+        for t in range(x.shape[tdim]):
+            reset = is_init.select(tdim, t)[..., None, None]
+            m = torch.where(reset, torch.zeros_like(m), m)
+            r, m = self.dnc.memory_step({k: v.select(tdim, t) for k, v in controls.items()}, m)
+            reads.append(r)
+            mems.append(m)
+        out = self.dnc.output(x, torch.stack(reads, dim=tdim))
+        return out, torch.stack(mems, dim=tdim)

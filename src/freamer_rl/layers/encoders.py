@@ -13,6 +13,10 @@ VisionEncoder             pixels ``[*B, H, W, C]``                   slots ``[*B
 CrossModalAttention       vision ``[*B, K, d]``, language slots      (vision', language')
 SlotPool                  slots ``[*B, K, d]``                       ``[*B, d]``
 ========================  =========================================  ===========================
+
+Every forward is free of host syncs under ``torch.vmap``/``torch.func``/``torch.compile`` (TorchRL's ``GAE`` vmaps
+the value network): value checks (id ranges, NaN/Inf inputs) and data-dependent shortcuts (deduplication, caches) run
+in eager mode only, and the maths is the same either way (see :mod:`freamer_rl.layers.checks`).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from freamer_rl.layers.checks import check_finite, value_checks_active
 from freamer_rl.layers.slot_attention import SlotAttention
 
 __all__ = [
@@ -41,7 +46,8 @@ def pixels_to_unit(pixels: torch.Tensor, in_channels: int = 3, name: str = "pixe
     """Channels-last pixels ``[b, H, W, C]`` on the 0-255 scale -> float ``[b, C, H, W]`` in ``[0, 1]``.
 
     uint8 and floating inputs are both divided by 255 (environments give uint8; a float copy of the same frames keeps
-    the 0-255 scale). Raises ``ValueError`` when the channel axis is not last.
+    the 0-255 scale). Raises ``ValueError`` when the channel axis is not last, and (eager mode only) when float
+    pixels hold NaN/Inf.
     """
     if pixels.dim() != 4 or pixels.shape[-1] != in_channels:
         raise ValueError(
@@ -49,6 +55,7 @@ def pixels_to_unit(pixels: torch.Tensor, in_channels: int = 3, name: str = "pixe
         )
     if not (pixels.dtype == torch.uint8 or pixels.is_floating_point()):
         raise TypeError(f"{name}: expected uint8 or floating pixels, got dtype {pixels.dtype}")
+    check_finite(pixels, name)
     x = pixels.permute(0, 3, 1, 2)
     if pixels.dtype == torch.uint8:
         x = x.to(torch.float32)
@@ -70,6 +77,8 @@ class RewardEncoder(nn.Module):
 
     ``[*B, H]`` reward history (most recent last) -> Conv1d(1 -> channels, kernel, 'same' padding) -> ReLU ->
     flatten ``[*B, channels * H]`` -> Linear -> ``[*B, out_dim]``.
+
+    A NaN/Inf reward raises ``ValueError`` in eager mode (skipped, same maths, under vmap/compile).
     """
 
     def __init__(self, history: int, out_dim: int, channels: int = 16, kernel: int = 3) -> None:
@@ -89,6 +98,7 @@ class RewardEncoder(nn.Module):
             raise ValueError(
                 f"RewardEncoder reward_history: expected [*B, {self.history}], got {tuple(rewards.shape)}"
             )
+        check_finite(rewards, "RewardEncoder reward_history")
         batch_shape = rewards.shape[:-1]
         x = rewards.reshape(-1, 1, self.history).to(self.proj.weight.dtype)
         h = F.relu(self.conv(x)).flatten(1)
@@ -105,6 +115,10 @@ class LanguageEncoder(nn.Module):
     With ``deduplicate`` (default) identical token rows in a batch are encoded once: missions are constant within
     an episode, so a PPO minibatch holds only a few distinct rows. The slot initialisation must then be
     deterministic for identical rows to get identical slots (true in eval mode, which training uses).
+
+    Eager mode only: ids outside ``[0, vocab_size)`` raise ``ValueError``, and the deduplication and the inference
+    cache are used. Under ``torch.vmap``/``torch.func``/``torch.compile`` (data-dependent shapes and host syncs are
+    impossible there) every row is encoded directly and ids are not range-checked; the slots are the same.
     """
 
     def __init__(
@@ -155,6 +169,9 @@ class LanguageEncoder(nn.Module):
         batch_shape = tokens.shape[:-1]
         length = tokens.shape[-1]
         ids = tokens.reshape(-1, length).long()
+        # Parameters count too: vmapping over stacked parameters alone must not fill the cache with batched rows.
+        if not value_checks_active(ids, *self.parameters()):
+            return self._encode(ids).reshape(*batch_shape, self.num_slots, self.out_dim)
         if ids.numel() and (int(ids.min()) < 0 or int(ids.max()) >= self.vocab_size):
             raise ValueError(
                 f"LanguageEncoder mission_tokens: ids must lie in [0, {self.vocab_size}), "
@@ -260,6 +277,9 @@ class VisionEncoder(nn.Module):
 
     ``backbone`` is any module mapping ``[b, H, W, C]`` pixels to ``[b, N, token_dim]`` tokens and exposing
     ``token_dim`` (:class:`CNNBackbone` or :class:`~freamer_rl.layers.clip_backbone.ClipBackbone`).
+
+    Non-finite tokens raise ``ValueError`` in eager mode (Slot Attention would otherwise turn one NaN token into NaN
+    slots for the whole sample); the check is skipped (same maths) under vmap/compile.
     """
 
     def __init__(self, backbone: nn.Module, out_dim: int = 128, num_slots: int = 8, slot_iters: int = 3) -> None:
@@ -289,6 +309,7 @@ class VisionEncoder(nn.Module):
                 f"VisionEncoder: backbone {type(self.backbone).__name__} returned {tuple(tokens.shape)}, "
                 f"expected [b, N, {self.token_dim}]"
             )
+        check_finite(tokens, f"VisionEncoder tokens (from {type(self.backbone).__name__})")
         feats = self.proj(tokens.to(self.proj.weight.dtype))
         slots = self.slot_attention(feats)
         return slots.reshape(*batch_shape, self.num_slots, self.out_dim)

@@ -42,6 +42,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from freamer_rl.layers.checks import check_finite
+
 __all__ = ["FlowMatchingRefiner", "cfm_interpolant"]
 
 
@@ -175,9 +177,12 @@ class FlowMatchingRefiner(nn.Module):
         """Refine ``e [*B, d]`` into ``e_hat = e + sigmoid(alpha) (x_N - e)`` (Eq. 3), shape ``[*B, d]``.
 
         ``steps`` overrides the number of Euler steps for this call (adaptive FM complexity, Section 3.6).
+        A NaN/Inf in ``e`` raises ``ValueError`` in eager mode; under ``torch.vmap``/``torch.func``/``torch.compile``
+        the forward is sync-free and the check is skipped (same maths; see :mod:`freamer_rl.layers.checks`).
         """
         if e.shape[-1] != self.dim:
             raise ValueError(f"e must have last dim {self.dim} (the refiner's dim); got shape {tuple(e.shape)}")
+        check_finite(e, "FlowMatchingRefiner input")
         x_n = self.integrate(e, steps)
         return e + self.gate.to(e.dtype) * (x_n - e)
 

@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from freamer_rl.layers.checks import check_finite, value_checks_active
+
 __all__ = ["SpectralConv1d", "StateFNOEncoder", "FNOFuser", "smoothness_loss"]
 
 
@@ -167,6 +169,10 @@ class StateFNOEncoder(nn.Module):
     Shapes:
         forward: ``grid int64 [*B, view_size, view_size, 3]``, ``direction int64 [*B]`` (or ``[*B, 1]``)
         -> ``[*B, out_dim]``.
+
+    Index ranges are checked (``ValueError``) in eager mode only; under ``torch.vmap``/``torch.func``/
+    ``torch.compile`` the forward is sync-free and computes the same maths without that check
+    (see :mod:`freamer_rl.layers.checks`).
     """
 
     def __init__(
@@ -213,6 +219,8 @@ class StateFNOEncoder(nn.Module):
             )
         if direction.dtype.is_floating_point or direction.dtype == torch.bool or direction.dtype.is_complex:
             raise TypeError(f"direction must hold integer indices (int64); got dtype {direction.dtype}")
+        if not value_checks_active(grid, direction):
+            return  # under vmap/grad/compile: index ranges are not checked (reading them is a host sync)
         if grid.numel() > 0:
             for c, (name, size) in enumerate(zip(("object", "colour", "state"), self.ranges)):
                 lo, hi = int(grid[..., c].min()), int(grid[..., c].max())
@@ -236,8 +244,10 @@ class StateFNOEncoder(nn.Module):
         # Sum of the three embeddings, computed as one multi-hot matmul (identical maths, much faster backward
         # than three embedding lookups): multi_hot [B', L, n_obj + n_col + n_state] @ stacked tables.
         table = torch.cat([self.object_embed.weight, self.color_embed.weight, self.state_embed.weight])
+        # Out-of-place scatter: under vmap ``g`` is batched but a fresh zeros tensor is not, and an in-place
+        # scatter into it is refused.
         multi_hot = torch.zeros(*g.shape[:-1], table.shape[0], dtype=table.dtype, device=g.device)
-        multi_hot.scatter_(-1, g + self._offsets.to(g.device), 1.0)
+        multi_hot = multi_hot.scatter(-1, g + self._offsets.to(g.device), 1.0)
         o = multi_hot @ table  # [B', L, C] channels-last
         pointwise = F.linear(o, self.pointwise.weight.squeeze(-1), self.pointwise.bias)  # the 1x1 conv W o
         h = F.gelu(self.spectral.forward_channels_last(o) + pointwise)  # Appendix E.2
@@ -296,6 +306,9 @@ class FNOFuser(nn.Module):
 
     Shapes:
         forward: ``E [*B, M, d] -> (fused [*B, d], E_out [*B, M, d])``.
+
+    A NaN/Inf in ``E`` raises ``ValueError`` in eager mode; the check is skipped (same maths) under
+    ``torch.vmap``/``torch.func``/``torch.compile`` (see :mod:`freamer_rl.layers.checks`).
     """
 
     def __init__(
@@ -318,6 +331,7 @@ class FNOFuser(nn.Module):
             raise ValueError(
                 f"FNOFuser expects E of shape [*B, M={self.num_modalities}, d={self.dim}]; got {tuple(e.shape)}"
             )
+        check_finite(e, "FNOFuser modal_stack")
         spec = self.spectral(e)  # [*B, M, d]  IFFT(R_k E^_k)      (Eq. A14)
         pw = self.pointwise(e.transpose(-1, -2)).transpose(-1, -2)  # [*B, M, d]  W E
         e_out = e + self.residual_scale.to(e.dtype) * F.gelu(self.norm(spec + pw))  # Eq. A15 (scaled residual)

@@ -12,7 +12,10 @@ Stabilisers (Appendix E.1, Table 5):
    exactly zero weight in the weighted mean, so padding never changes the output;
 2. NaN fallback: an attention column (the distribution of one input over the K slots) that contains NaN/inf is
    replaced by the uniform ``1/K``; every substituted column is counted in :attr:`SlotAttention.nan_fallbacks`
-   and reported with a rate-limited ``logger.warning``;
+   and reported with a rate-limited ``logger.warning`` (counting reads the count on the host, so it is skipped
+   under ``torch.vmap``/``torch.func``/``torch.compile``; the substitution itself always applies). The fallback
+   handles NaN arising *inside* attention; a NaN input token still poisons its sample's slots through the
+   values, so the encoders reject non-finite inputs before calling Slot Attention;
 3. GRU initialisation: Xavier-uniform (gain 0.5) input weights, orthogonal (gain 0.5) hidden weights, zero biases;
 4. variance clipping of the slot initialisation: ``sigma = max(exp(log_sigma), 1e-6)``.
 """
@@ -26,6 +29,8 @@ from typing import Literal
 
 import torch
 from torch import nn
+
+from freamer_rl.layers.checks import value_checks_active
 
 logger = logging.getLogger(__name__)
 
@@ -76,7 +81,8 @@ class SlotAttention(nn.Module):
 
     Attributes:
         num_slots, slot_dim (= dim), out_dim (= dim), input_dim.
-        nan_fallbacks (int): cumulative number of attention columns replaced by the uniform fallback (stabiliser 2).
+        nan_fallbacks (int): cumulative number of attention columns replaced by the uniform fallback (stabiliser 2),
+            counted in eager calls only (not under vmap/compile).
 
     Shapes:
         forward(inputs ``[*B, N, D_in]``, mask ``[*B, N]`` bool or None) -> slots ``[*B, K, d]``.
@@ -234,7 +240,9 @@ class SlotAttention(nn.Module):
             slots = slots.reshape(b, self.num_slots, self.slot_dim)
             slots = slots + self.mlp(self.norm_mlp(slots))
 
-        if fallback_count is not None:
+        # Reading the count is a host sync: eager mode only (it is batched under vmap, also when only the
+        # parameters are vmapped).
+        if fallback_count is not None and value_checks_active(fallback_count):
             count = int(fallback_count)  # one host sync per call (never per iteration)
             if count:
                 self._report_fallbacks(count)
