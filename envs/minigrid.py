@@ -59,11 +59,13 @@ from tensordict import NonTensorData, TensorDict, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, NonTensor, Unbounded
 from torchrl.envs import EnvBase
 
+from freamer_rl.env_registry import EnvAdapter
 from freamer_rl.text import WordTokenizer
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "ADAPTER",
     "MINIGRID_VOCAB",
     "MiniGridEnv",
     "make_minigrid_env",
@@ -368,3 +370,24 @@ def make_minigrid_env(
         device=device,
         include_mission=include_mission,
     )
+
+
+def _minigrid_options(cfg) -> dict[str, Any]:
+    """Adapter options implied by a :class:`freamer_rl.config.FreamerConfig`."""
+    return {
+        # rendering costs ~3x per step: only when a modality reads the pixels
+        "pixels": "vision" in cfg.model.modalities,
+        "reward_history": cfg.env.reward_history,
+        "max_mission_tokens": cfg.env.max_mission_tokens,
+        # the raw mission string costs ~40% of a step in TorchRL's non-tensor handling; training reads tokens
+        "include_mission": False,
+    }
+
+
+def _minigrid_success(ends: TensorDictBase) -> torch.Tensor:
+    """MiniGrid success: the episode terminated with a positive reward (reaching the goal)."""
+    return ends["terminated"].reshape(-1) & (ends["reward"].reshape(-1) > 0)
+
+
+#: The ``minigrid`` entry point of the ``freamer_rl.envs`` group.
+ADAPTER = EnvAdapter(make_env=make_minigrid_env, options=_minigrid_options, success=_minigrid_success)

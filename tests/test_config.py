@@ -4,7 +4,8 @@ import pytest
 
 from freamer_rl.config import ConfigError, FreamerConfig, config_to_dict, load_config
 
-RECIPES = sorted((Path(__file__).resolve().parents[1] / "recipes").glob("*.yaml"))
+_RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes"
+RECIPES = sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))
 
 
 def test_defaults_load():

@@ -10,7 +10,7 @@ from freamer_rl.config import load_config
 from freamer_rl.train import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
-RECIPES = sorted((ROOT / "recipes").glob("*.yaml"))
+RECIPES = sorted((ROOT / "recipes").glob("*.yaml")) + sorted((ROOT / "recipes" / "gym").glob("*.yaml"))
 
 SHRINK = [
     "env.num_envs=2",

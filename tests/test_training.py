@@ -18,6 +18,7 @@ from freamer_rl import cli, env_registry
 from freamer_rl.config import load_config
 from freamer_rl.errors import CheckpointError, EnvSetupError
 from freamer_rl.factory import build_freamer
+from freamer_rl.sequences import split_sequences
 from freamer_rl.train import Trainer, build_modules, make_batched_env, make_single_env
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,7 +92,7 @@ def test_collector_gae_and_torchrl_clip_ppo_loss(tmp_path):
     collector.shutdown()
     assert data.batch_size == (2, 64)
     data = trainer._compute_advantage(data)
-    seqs = trainer._sequences(data)
+    seqs = split_sequences(data, cfg.ppo.sequence_length)
     assert seqs.batch_size == (16, 8)
     loss = ClipPPOLoss(modules.policy, modules.value, functional=False)
     with set_recurrent_mode(True):
@@ -133,7 +134,7 @@ def test_smoothness_term_reaches_encoders_only_when_asked(tmp_path, into_encoder
     collector = trainer._make_collector(128)
     data = next(iter(collector))
     collector.shutdown()
-    mb = trainer._sequences(trainer._compute_advantage(data))
+    mb = split_sequences(trainer._compute_advantage(data), trainer.cfg.ppo.sequence_length)
     with set_recurrent_mode(True):
         mb = trainer.modules.trunk(mb)
     loss = trainer.aux_loss(mb)["loss_smooth"]

@@ -6,7 +6,10 @@
     freamer-rl health train recipes/health/health_foundation.yaml
 
 User errors (bad recipe key or type, unknown env id, a modality the env lacks, missing CLIP weights, a checkpoint
-from another config) print one ``error:`` line and exit with status 2; ``--debug`` shows the traceback.
+from another config or one that is not plain tensors and data, a run directory in use by another run, ``--no-resume``
+on a run that has checkpoints) print one ``error:`` line and exit with status 2; ``--debug`` shows the traceback.
+Ctrl-C exits with 130 and SIGTERM with 143, both after writing a checkpoint; rerunning the same command resumes
+(also after ``kill -9``: from the last periodic checkpoint).
 """
 
 from __future__ import annotations
@@ -32,7 +35,11 @@ def _parser() -> argparse.ArgumentParser:
     p_train.add_argument("recipe", help="path to a recipe YAML")
     p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. ppo.lr=3e-4 run.seed=1")
     p_train.add_argument("--run-dir", default=None, help="run directory (default: run.output_dir/run.name)")
-    p_train.add_argument("--no-resume", action="store_true", help="ignore checkpoints already in the run directory")
+    p_train.add_argument(
+        "--no-resume", action="store_true",
+        help="start from scratch; refused (nothing is deleted) when the run directory already holds checkpoints: "
+        "use another run.name / --run-dir, or delete the old run yourself",
+    )
 
     p_eval = sub.add_parser("eval", help="evaluate a checkpoint")
     p_eval.add_argument("checkpoint", help="a checkpoint .pt file or a run directory (uses its latest checkpoint)")
@@ -46,7 +53,9 @@ def _parser() -> argparse.ArgumentParser:
     )
     p_health.add_argument("health_args", nargs=argparse.REMAINDER)
 
-    p_params = sub.add_parser("params", help="print the parameter table (trainable vs frozen per component)")
+    p_params = sub.add_parser(
+        "params", help="print the parameter table (trainable vs frozen per component); never downloads weights"
+    )
     p_params.add_argument("recipe")
     p_params.add_argument("overrides", nargs="*")
     p_params.add_argument("--markdown", action="store_true")
@@ -63,8 +72,8 @@ def _run(args: argparse.Namespace) -> int:
         logger.info("summary: %s", json.dumps(summary))
         return 0
     if args.command == "eval":
+        from freamer_rl.checkpoint import latest_checkpoint
         from freamer_rl.evaluate import evaluate
-        from freamer_rl.train import latest_checkpoint
 
         path = Path(args.checkpoint)
         if path.is_dir():
@@ -83,12 +92,11 @@ def _run(args: argparse.Namespace) -> int:
         return health_main(args.health_args, prog="freamer-rl health")
     if args.command == "params":
         from freamer_rl.config import load_config
-        from freamer_rl.params import format_parameter_table, parameter_table
-        from freamer_rl.train import build_modules
+        from freamer_rl.params import OFFLINE_NOTE, format_parameter_table, offline_parameter_table
 
         cfg = load_config(args.recipe, args.overrides)
-        table = parameter_table(build_modules(cfg))
-        sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n")
+        table = offline_parameter_table(cfg)
+        sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n" + OFFLINE_NOTE + "\n")
         return 0
     raise AssertionError(args.command)
 
@@ -98,6 +106,9 @@ def main(argv: list[str] | None = None) -> int:
     args, unknown = parser.parse_known_args(argv)
     if args.command == "health":  # its own parser takes everything after "health", options included
         args.health_args = unknown + args.health_args
+    elif args.command in ("train", "params") and unknown and all("=" in a and not a.startswith("-") for a in unknown):
+        # overrides after an option (train recipe.yaml --run-dir D ppo.lr=1e-3): argparse leaves them unparsed
+        args.overrides = list(args.overrides) + unknown
     elif unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     logging.basicConfig(level=getattr(logging, args.log_level), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
@@ -108,7 +119,12 @@ def main(argv: list[str] | None = None) -> int:
             raise
         sys.stderr.write(f"error: {err}\n")
         return 2
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as err:
+        from freamer_rl.rundir import Terminated
+
+        if isinstance(err, Terminated):  # SIGTERM: the trainer checkpointed like on Ctrl-C; 128 + 15 as a shell would
+            sys.stderr.write("terminated (SIGTERM): rerun the same command to resume from the latest checkpoint\n")
+            return 143
         sys.stderr.write("interrupted: rerun the same command to resume from the latest checkpoint\n")
         return 130
 

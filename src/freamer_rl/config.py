@@ -19,8 +19,6 @@ import yaml
 
 from freamer_rl.errors import FreamerError
 
-MODALITIES = ("state", "vision", "language", "reward")
-
 
 class ConfigError(FreamerError, ValueError):
     """A recipe or override is invalid; the message names the dotted field."""
@@ -70,6 +68,13 @@ class RewardConfig:
 
 
 @dataclass
+class VectorConfig:
+    """Encoder of the ``vector`` modality (plain vector observations, see ``layers/vector.py``)."""
+
+    hidden: int = 128
+
+
+@dataclass
 class FlowConfig:
     """Layer 2 per-modality flow-matching refiner (Eq. 1-3, A13)."""
 
@@ -99,7 +104,10 @@ class DNCConfig:
 
 @dataclass
 class ModelConfig:
+    # Names from freamer_rl.modalities.MODALITIES, in the order they are stacked for the FNO fuser (Layer 3).
     modalities: list[str] = field(default_factory=lambda: ["state", "language", "reward"])
+    # Env observation keys per modality when they differ from the registry's defaults, e.g. {vector: [observation]}.
+    observation_keys: dict[str, list[str]] = field(default_factory=dict)
     # Modalities whose Layer-1 encoder is frozen (kept at its initial or loaded weights, left out of the optimiser),
     # as the CLIP tower always is. Their refiners, the fuser and everything downstream still train.
     freeze_encoders: list[str] = field(default_factory=list)
@@ -110,6 +118,7 @@ class ModelConfig:
     language: LanguageConfig = field(default_factory=LanguageConfig)
     state: StateConfig = field(default_factory=StateConfig)
     reward: RewardConfig = field(default_factory=RewardConfig)
+    vector: VectorConfig = field(default_factory=VectorConfig)
     flow: FlowConfig = field(default_factory=FlowConfig)
     fno: FNOConfig = field(default_factory=FNOConfig)
     dnc: DNCConfig = field(default_factory=DNCConfig)
@@ -331,12 +340,24 @@ def config_to_dict(cfg: FreamerConfig) -> dict:
 
 def validate(cfg: FreamerConfig) -> None:
     """Cross-field checks that types alone cannot express."""
+    from freamer_rl.modalities import MODALITIES
+    from freamer_rl.rundir import run_name_problem
+
+    # the run directory is run.output_dir/run.name: a name with separators or '..' would write elsewhere
+    if cfg.run.name and (problem := run_name_problem(cfg.run.name)):
+        raise ConfigError(f"run.name: {problem}")
+
     mods = cfg.model.modalities
     if not mods:
         raise ConfigError("model.modalities: at least one modality is required")
     for m in mods:
         if m not in MODALITIES:
             raise ConfigError(f"model.modalities: unknown modality '{m}' (known: {', '.join(MODALITIES)})")
+    for m, keys in cfg.model.observation_keys.items():
+        if m not in mods:
+            raise ConfigError(f"model.observation_keys: '{m}' is not one of model.modalities {mods}")
+        if not keys:
+            raise ConfigError(f"model.observation_keys.{m}: give at least one observation key")
     if len(set(mods)) != len(mods):
         raise ConfigError(f"model.modalities: duplicates in {mods}")
     for m in cfg.model.freeze_encoders:

@@ -1,17 +1,43 @@
 """Find environment adapters through the ``freamer_rl.envs`` entry-point group.
 
-The library never imports the top-level ``envs`` package: adapters register themselves in ``pyproject.toml``
-(``minigrid = "freamer_rl_envs.minigrid:make_minigrid_env"``) and any third-party package can add its own.
-An adapter is a callable ``factory(env_id, *, seed=None, **options) -> torchrl.envs.EnvBase``.
+The library never imports the adapters (``envs/``, installed as ``freamer_rl_envs``): they register themselves in
+``pyproject.toml`` (``minigrid = "freamer_rl_envs.minigrid:ADAPTER"``) and any third-party package can add its own.
+An entry point names either an :class:`EnvAdapter` or a plain factory
+``factory(env_id, *, seed=None, **options) -> torchrl.envs.EnvBase`` (treated as an adapter without options).
+The adapter, not the library, decides which config values become env options and what counts as a success.
 """
 
 from __future__ import annotations
 
 import functools
+from dataclasses import dataclass
 from importlib.metadata import entry_points
 from typing import Any, Callable
 
+import torch
+
 from freamer_rl.errors import EnvSetupError
+
+
+def _no_options(cfg: Any) -> dict[str, Any]:
+    return {}
+
+
+@dataclass(frozen=True)
+class EnvAdapter:
+    """What an adapter declares.
+
+    Attributes:
+        make_env: ``(env_id, *, seed=None, **options) -> EnvBase`` building one unbatched env.
+        options: ``FreamerConfig -> dict`` of keyword options for ``make_env`` (e.g. render pixels only when the
+            vision modality is used).
+        success: ``next-tensordict entries at episode ends [N] -> bool [N]``, or ``None`` when the task has no
+            notion of success (the trainer then reports returns only).
+    """
+
+    make_env: Callable[..., Any]
+    options: Callable[[Any], dict[str, Any]] = _no_options
+    success: Callable[[Any], torch.Tensor] | None = None
 
 ENTRY_POINT_GROUP = "freamer_rl.envs"
 
@@ -21,12 +47,18 @@ def available_adapters() -> dict[str, Any]:
     return {ep.name: ep for ep in entry_points(group=ENTRY_POINT_GROUP)}
 
 
-def get_env_factory(adapter: str) -> Callable[..., Any]:
+def get_adapter(adapter: str) -> EnvAdapter:
+    """The :class:`EnvAdapter` registered under ``adapter`` (a plain factory is wrapped)."""
     adapters = available_adapters()
     if adapter not in adapters:
         known = ", ".join(sorted(adapters)) or "none (is the project installed? pip install -e .)"
         raise EnvSetupError(f"env.adapter: unknown adapter '{adapter}' (installed adapters: {known})")
-    return adapters[adapter].load()
+    obj = adapters[adapter].load()
+    return obj if isinstance(obj, EnvAdapter) else EnvAdapter(make_env=obj)
+
+
+def get_env_factory(adapter: str) -> Callable[..., Any]:
+    return get_adapter(adapter).make_env
 
 
 def make_env(adapter: str, env_id: str, *, seed: int | None = None, **options: Any):

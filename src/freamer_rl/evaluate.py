@@ -11,7 +11,8 @@ from torchrl.envs.utils import ExplorationType, set_exploration_type
 
 from freamer_rl.config import ConfigError, config_from_dict
 from freamer_rl.errors import CheckpointError
-from freamer_rl.train import build_modules, load_checkpoint, load_model_state, make_batched_env
+from freamer_rl.checkpoint import load_checkpoint, load_model_state
+from freamer_rl.train import build_modules, make_batched_env
 
 logger = logging.getLogger(__name__)
 

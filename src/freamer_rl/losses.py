@@ -16,10 +16,14 @@ term then trains only the fuser's own parameters. The recomputation costs one ex
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import torch
 import torch.nn.functional as F
 from tensordict import TensorDict, TensorDictBase
+from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.objectives import LossModule
 
 from freamer_rl.layers.fno import smoothness_loss
 
@@ -33,19 +37,49 @@ def info_nce(a: torch.Tensor, b: torch.Tensor, temperature: float = 0.1) -> torc
     return 0.5 * (F.cross_entropy(logits, labels) + F.cross_entropy(logits.T, labels))
 
 
-class FreamerAuxLoss(nn.Module):
-    """Flow-matching (Eq. A13), vision-language contrastive and FNO smoothness (Eq. A16) losses.
+class FreamerAuxLoss(LossModule):
+    """Flow-matching (Eq. A13), vision-language contrastive and FNO smoothness (Eq. A16) losses, as a TorchRL loss.
+
+    Use it beside :class:`~torchrl.objectives.ClipPPOLoss` and add the ``loss_*`` entries of both (Eq. 6)::
+
+        aux = FreamerAuxLoss(modules.refiners, smooth_fuser=modules.fuser)
+        with set_recurrent_mode(True):
+            mb = modules.trunk(mb)                # [B, T] sequences: one trunk pass writes the keys below
+        ppo = ClipPPOLoss(modules.actor, modules.critic)(mb)    # the heads read "hidden"
+        loss = sum(v for k, v in {**ppo, **aux(mb)}.items() if k.startswith("loss_"))
+
+    Given ``trunk=``, the loss runs the trunk itself on every minibatch (in recurrent mode, as every TorchRL loss
+    does; on a shallow copy, so the caller's tensordict is left as it was), so it can sit beside
+    ``ClipPPOLoss(policy, value)`` on raw minibatches at the cost of one more trunk pass. It always reruns it:
+    collected data already holds the trunk's keys, but computed at collection time, without gradients.
+
+    Keys read (``set_keys`` renames them, TorchRL's pattern; shapes for a minibatch of batch ``[*B]``):
+        embed: prefix of the Layer-1 embeddings ``(embed, m) [*B, d]`` for every refined modality ``m``.
+        modal_stack: the Layer-3 input ``E [*B, M, d]`` (used when ``smooth_fuser`` is given).
+        fused_modalities: the fuser's rows ``E_out [*B, M, d]`` (used when ``smooth_fuser`` is None).
 
     Args:
-        refiners: the per-modality :class:`~freamer_rl.layers.flow_matching.FlowMatchingRefiner` modules.
+        refiners: ``{modality: FlowMatchingRefiner}`` (``FreamerModules.refiners``).
         lambda_fm, lambda_cl, lambda_smooth: weights of Eq. 6. A zero weight skips the term.
         noise_std: perturbation scale of the denoising CFM pairs.
+        temperature: InfoNCE temperature of the contrastive term (used only with vision and language).
         smooth_fuser: the :class:`~freamer_rl.layers.fno.FNOFuser`. Given, ``L_smooth`` is computed on
-            ``smooth_fuser(E.detach())`` (E read from ``modal_stack_key``) and trains only the fuser; ``None``: on the
-            ``fused_modalities_key`` rows of the trunk pass, so the gradient reaches encoders and refiners too.
-    Returns (forward): a TensorDict with weighted ``loss_fm``, ``loss_cl``, ``loss_smooth`` (scalars, summed into
-    the objective by the caller) and unweighted per-modality diagnostics ``fm_<modality>``.
+            ``smooth_fuser(E.detach())`` and trains only the fuser; ``None``: on the trunk's ``fused_modalities``
+            rows, so the gradient reaches encoders and refiners too (the literal Eq. 6; see the module docstring).
+        trunk: optional trunk run on every minibatch before the keys above are read.
+
+    Returns (forward): a TensorDict with the weighted scalars ``loss_fm``, ``loss_cl``, ``loss_smooth`` (each only when
+    its weight is non-zero and its inputs exist) and detached per-modality diagnostics ``fm_<modality>``.
     """
+
+    @dataclass
+    class _AcceptedKeys:
+        embed: NestedKey = "embed"
+        modal_stack: NestedKey = "modal_stack"
+        fused_modalities: NestedKey = "fused_modalities"
+
+    default_keys = _AcceptedKeys
+    tensor_keys: _AcceptedKeys
 
     def __init__(
         self,
@@ -57,9 +91,7 @@ class FreamerAuxLoss(nn.Module):
         noise_std: float = 1.0,
         temperature: float = 0.1,
         smooth_fuser: nn.Module | None = None,
-        embed_key: str = "embed",
-        modal_stack_key: str = "modal_stack",
-        fused_modalities_key: str = "fused_modalities",
+        trunk: nn.Module | None = None,
     ) -> None:
         super().__init__()
         self.refiners = refiners
@@ -69,26 +101,43 @@ class FreamerAuxLoss(nn.Module):
         self.noise_std = noise_std
         self.temperature = temperature
         self.smooth_fuser = smooth_fuser
-        self.embed_key = embed_key
-        self.modal_stack_key = modal_stack_key
-        self.fused_modalities_key = fused_modalities_key
+        self.trunk = trunk
+
+    def _forward_value_estimator_keys(self, **kwargs) -> None:
+        """No value estimator: nothing to forward (TorchRL calls this from ``set_keys``)."""
+
+    @property
+    def in_keys(self) -> list:
+        keys = self.tensor_keys
+        out = [(*_as_tuple(keys.embed), m) for m in self.refiners]
+        out.append(keys.modal_stack if self.smooth_fuser is not None else keys.fused_modalities)
+        return out
+
+    def _embed(self, td: TensorDictBase, m: str) -> torch.Tensor:
+        return td.get((*_as_tuple(self.tensor_keys.embed), m))
 
     def forward(self, td: TensorDictBase) -> TensorDict:
+        keys = self.tensor_keys
+        if self.trunk is not None:
+            td = self.trunk(td.copy())  # recurrent mode is on inside every LossModule.forward
         out: dict[str, torch.Tensor] = {}
-        zero = torch.zeros((), device=td.device)
         if self.lambda_fm:
-            per_mod = {m: r.cfm_loss(td.get((self.embed_key, m)), noise_std=self.noise_std) for m, r in self.refiners.items()}
+            per_mod = {m: r.cfm_loss(self._embed(td, m), noise_std=self.noise_std) for m, r in self.refiners.items()}
             for m, v in per_mod.items():
                 out[f"fm_{m}"] = v.detach()
             out["loss_fm"] = self.lambda_fm * torch.stack(list(per_mod.values())).mean()
         if self.lambda_cl and "vision" in self.refiners and "language" in self.refiners:
-            v = td.get((self.embed_key, "vision"))
-            l = td.get((self.embed_key, "language"))
+            v, l = self._embed(td, "vision"), self._embed(td, "language")
+            zero = torch.zeros((), device=v.device)
             out["loss_cl"] = self.lambda_cl * info_nce(v, l, self.temperature) if v.numel() // v.shape[-1] > 1 else zero
         if self.lambda_smooth:
             if self.smooth_fuser is not None:
-                rows = self.smooth_fuser(td.get(self.modal_stack_key).detach())[1]
+                rows = self.smooth_fuser(td.get(keys.modal_stack).detach())[1]
             else:
-                rows = td.get(self.fused_modalities_key)
+                rows = td.get(keys.fused_modalities)
             out["loss_smooth"] = self.lambda_smooth * smoothness_loss(rows)
         return TensorDict(out, batch_size=[])
+
+
+def _as_tuple(key: NestedKey) -> tuple:
+    return key if isinstance(key, tuple) else (key,)

@@ -2,9 +2,17 @@
 
 from __future__ import annotations
 
+import copy
+import logging
+
 from torch import nn
 
 from freamer_rl.factory import FreamerModules
+
+#: Printed under the table by ``freamer-rl params``.
+OFFLINE_NOTE = (
+    "counted on a randomly initialised model of the same architecture: no weights were loaded or downloaded"
+)
 
 
 def _count(module: nn.Module, seen: set[int]) -> tuple[int, int]:
@@ -26,6 +34,7 @@ def parameter_table(modules: FreamerModules) -> list[dict]:
     from freamer_rl.layers.encoders import CrossModalAttention, LanguageEncoder, RewardEncoder, VisionEncoder
     from freamer_rl.layers.flow_matching import FlowMatchingRefiner
     from freamer_rl.layers.fno import FNOFuser, StateFNOEncoder
+    from freamer_rl.layers.vector import VectorEncoder
 
     groups: dict[str, list[nn.Module]] = {}
 
@@ -40,6 +49,8 @@ def parameter_table(modules: FreamerModules) -> list[dict]:
             add("Slot Attention + Cross-Modal Attn", m)
         elif isinstance(m, StateFNOEncoder):
             add("State encoder (FNO)", m)
+        elif isinstance(m, VectorEncoder):
+            add("Vector encoder (MLP)", m)
         elif isinstance(m, RewardEncoder):
             add("Reward encoder (Conv1D)", m)
         elif isinstance(m, FlowMatchingRefiner):
@@ -69,6 +80,26 @@ def parameter_table(modules: FreamerModules) -> list[dict]:
     total_f = sum(r["frozen"] for r in rows)
     rows.append({"component": "Total", "trainable": total_t, "frozen": total_f})
     return rows
+
+
+def offline_parameter_table(cfg) -> list[dict]:
+    """:func:`parameter_table` of ``cfg``'s model built with random weights, so no CLIP weights are resolved.
+
+    A pretrained tag or checkpoint changes the values of the weights, never their number; building the tower at
+    random keeps ``freamer-rl params`` instant and offline (it used to try a 50 s download first).
+    """
+    from freamer_rl.train import build_modules
+
+    cfg = copy.deepcopy(cfg)
+    vision = cfg.model.vision
+    vision.clip_pretrained, vision.clip_checkpoint, vision.allow_random_weights = None, None, True
+    clip_log = logging.getLogger("freamer_rl.layers.clip_backbone")
+    level = clip_log.level
+    clip_log.setLevel(logging.ERROR)  # its "RANDOM weights" warning is the point here, not a problem
+    try:
+        return parameter_table(build_modules(cfg))
+    finally:
+        clip_log.setLevel(level)
 
 
 def _fmt(n: int) -> str:

@@ -5,8 +5,11 @@ One call of :func:`train` owns one run directory::
     runs/<name>/config.yaml        resolved config
     runs/<name>/run_info.json      git commit, versions, command
     runs/<name>/progress.csv       one row per batch (frames, episodes, success, return, losses, gates, fps)
-    runs/<name>/metrics/           the selected TorchRL logger's files (CSV by default; wandb / tensorboard)
-    runs/<name>/checkpoints/       periodic checkpoints + latest.pt (a rerun resumes from it)
+    runs/<name>/metrics/attempt_NN the selected TorchRL logger's files (CSV by default; wandb / tensorboard), one
+                                   folder per start or resume (steps after the resumed checkpoint may repeat there;
+                                   progress.csv is rewritten from the checkpoint and never repeats a row)
+    runs/<name>/checkpoints/       the newest 3 checkpoint_<frames>.pt + ``latest`` (a rerun resumes from it)
+    runs/<name>/.lock              held while a run writes (a second run on the directory is refused)
     runs/<name>/learning_curve.png success rate and return vs frames
     runs/<name>/summary.json       final figures
 
@@ -40,8 +43,6 @@ import torch
 import yaml
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
-from torchrl.data import LazyTensorStorage, ReplayBuffer
-from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, StepCounter, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
@@ -52,12 +53,11 @@ from freamer_rl.config import FreamerConfig, config_to_dict
 from freamer_rl.errors import CheckpointError, FreamerError
 from freamer_rl.factory import FreamerModules, build_freamer
 from freamer_rl.losses import FreamerAuxLoss
+from freamer_rl.sequences import sequence_replay_buffer, split_sequences
 
 logger = logging.getLogger(__name__)
 
 SUCCESS_TARGET = 0.95
-# Keys that only matter at collection time or cannot live in a tensor storage.
-_DROP_KEYS = ("mission", ("next", "mission"))
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -66,16 +66,8 @@ _DROP_KEYS = ("mission", ("next", "mission"))
 
 
 def env_options(cfg: FreamerConfig) -> dict[str, Any]:
-    """Adapter keyword options implied by the config (pixels are rendered only when vision is used)."""
-    if cfg.env.adapter == "minigrid":
-        return {
-            "pixels": "vision" in cfg.model.modalities,
-            "reward_history": cfg.env.reward_history,
-            "max_mission_tokens": cfg.env.max_mission_tokens,
-            # the raw mission string costs ~40% of a step in TorchRL's non-tensor handling; training reads tokens
-            "include_mission": False,
-        }
-    return {}
+    """Adapter keyword options implied by the config; the adapter declares them (see ``EnvAdapter.options``)."""
+    return env_registry.get_adapter(cfg.env.adapter).options(cfg)
 
 
 def make_single_env(cfg: FreamerConfig, seed: int | None = None) -> EnvBase:
@@ -134,7 +126,9 @@ def git_commit() -> dict[str, Any]:
 
 
 def default_run_name(cfg: FreamerConfig) -> str:
+    # env ids may hold a namespace ("ALE/Pong-v5"): keep the name one folder under run.output_dir
     env_short = cfg.env.id.replace("MiniGrid-", "").replace("-v0", "")
+    env_short = env_short.replace("/", "_").replace("\\", "_").replace("..", "_")
     return f"{env_short}-s{cfg.run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
@@ -143,6 +137,8 @@ class EpisodeStats:
     """Running episode statistics over the whole run and a success window of the last ``window`` episodes."""
 
     window: int = 100
+    # episode-end entries of the "next" tensordict [N] -> bool [N]; None: the task has no success (returns only)
+    success_fn: Any = None
     episodes: int = 0
     recent_success: deque = field(default_factory=deque)
     recent_return: deque = field(default_factory=deque)
@@ -166,15 +162,20 @@ class EpisodeStats:
         def at_ends(key):
             return nxt[key].reshape(B, T)[t_idx[:, 0], t_idx[:, 1]]
 
-        rets, lens, term, rew = (at_ends(k) for k in ("episode_reward", "step_count", "terminated", "reward"))
+        rets, lens = (at_ends(k) for k in ("episode_reward", "step_count"))
+        succ = None
+        if self.success_fn is not None:
+            ends = nxt.reshape(B, T)[t_idx[:, 0], t_idx[:, 1]]
+            succ = self.success_fn(ends).reshape(-1).tolist()
         for i in range(t_idx.shape[0]):
             self.episodes += 1
-            success = bool(term[i]) and float(rew[i]) > 0
-            self._push(self.recent_success, float(success))
+            if succ is not None:
+                self._push(self.recent_success, float(succ[i]))
             self._push(self.recent_return, float(rets[i]))
             self._push(self.recent_length, float(lens[i]))
             if (
-                self.first_target_episodes is None
+                succ is not None
+                and self.first_target_episodes is None
                 and len(self.recent_success) >= self.window
                 and self.success_rate >= SUCCESS_TARGET
             ):
@@ -250,72 +251,17 @@ def plot_learning_curve(rows: list[dict], path: Path, title: str = "") -> None:
 # Checkpoints
 # --------------------------------------------------------------------------------------------------------------
 
-# Config sections whose change makes a checkpoint incompatible with a run.
-_STRUCTURAL_SECTIONS = ("model", "env")
-
-
-def _structural_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
-    diffs = []
-    for key in sorted(set(a) | set(b)):
-        va, vb = a.get(key), b.get(key)
-        name = f"{prefix}.{key}" if prefix else key
-        if isinstance(va, dict) and isinstance(vb, dict) and key != "gate_init":
-            diffs += _structural_diff(va, vb, name)
-        elif va != vb:
-            diffs.append(f"{name}: checkpoint {va!r} vs now {vb!r}")
-    return diffs
-
-
-def check_checkpoint_config(saved: dict, current: dict, path: Path) -> None:
-    diffs = []
-    for section in _STRUCTURAL_SECTIONS:
-        diffs += _structural_diff(saved.get(section, {}), current.get(section, {}), section)
-    if diffs:
-        raise CheckpointError(f"checkpoint {path} comes from another config ({'; '.join(diffs[:4])})")
-
-
-def load_checkpoint(path: str | Path) -> dict:
-    path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"checkpoint not found: {path}")
-    try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as err:  # torch.load raises many types (pickle, zip, EOF); report the file, keep the cause
-        raise CheckpointError(f"cannot read checkpoint {path}: {type(err).__name__}: {err}") from err
-    if not isinstance(ckpt, dict) or "model" not in ckpt or "config" not in ckpt:
-        raise CheckpointError(f"{path} is not a freamer_rl checkpoint (no 'model'/'config' entries)")
-    return ckpt
-
-
-def load_model_state(modules: FreamerModules, state: dict, path: Path) -> None:
-    try:
-        modules.actor_value.load_state_dict(state)
-    except RuntimeError as err:
-        first = str(err).splitlines()[0]
-        raise CheckpointError(f"checkpoint {path} does not fit this model: {first}") from err
-
-
-def save_checkpoint(run_dir: Path, payload: dict, keep: int = 3) -> Path:
-    ckpt_dir = run_dir / "checkpoints"
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
-    path = ckpt_dir / f"checkpoint_{payload['frames']:09d}.pt"
-    tmp = ckpt_dir / ".tmp.pt"
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
-    latest_tmp = ckpt_dir / ".latest.tmp"
-    latest_tmp.write_text(path.name)
-    os.replace(latest_tmp, ckpt_dir / "latest")
-    for old in sorted(ckpt_dir.glob("checkpoint_*.pt"))[:-keep]:
-        old.unlink()
-    return path
-
-
-def latest_checkpoint(run_dir: Path) -> Path | None:
-    marker = run_dir / "checkpoints" / "latest"
-    if not marker.is_file():
-        return None
-    path = run_dir / "checkpoints" / marker.read_text().strip()
-    return path if path.is_file() else None
+# Format, reader (weights_only) and the one atomic, rotating writer live in freamer_rl.checkpoint, shared with the
+# health pipeline; re-exported here because callers (evaluate, the CLI, user scripts) import them from train.
+from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT  # noqa: E402
+from freamer_rl.checkpoint import (  # noqa: E402, F401
+    atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
+    load_model_state, remove_stale_temps, save_checkpoint,
+)
+from freamer_rl.config import ConfigError  # noqa: E402
+from freamer_rl.rundir import (  # noqa: E402
+    RunDirLock, Terminated, catch_sigterm, next_attempt_name, restore_sigterm, run_name_problem, write_rows_csv,
+)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -353,23 +299,50 @@ class Trainer:
             noise_std=cfg.model.flow.noise_std,
             smooth_fuser=None if p.smooth_into_encoders else self.modules.fuser,
         )
+        # built once: a new buffer per batch costs time and logs TorchRL's storage INFO line every batch
+        self._sequence_buffer = sequence_replay_buffer(
+            p.frames_per_batch // p.sequence_length, p.minibatch_size // p.sequence_length
+        )
         self.params = [q for q in self.modules.actor_value.parameters() if q.requires_grad]
         # fused Adam / foreach clipping: ~4x less optimiser overhead for the ~90 small parameter tensors
         self.optimizer = torch.optim.Adam(self.params, lr=p.lr, eps=p.adam_eps, fused=True)
         self.frames = 0
         self.batches = 0
-        self.stats = EpisodeStats(window=cfg.logging.success_window)
+        self.stats = EpisodeStats(
+            window=cfg.logging.success_window, success_fn=env_registry.get_adapter(cfg.env.adapter).success
+        )
         self.rows: list[dict] = []
         self.wall_time = 0.0
         self.resumed_from: Path | None = None
-        self.run_dir.mkdir(parents=True, exist_ok=True)
-        if resume and (ckpt_path := latest_checkpoint(self.run_dir)) is not None:
-            self._resume(ckpt_path)
-        self._write_run_files()
+        # held from here until train() ends: a second run on this directory is refused instead of interleaving
+        self._lock = RunDirLock(self.run_dir).acquire()
+        try:
+            self._open_run_dir(resume)
+        except BaseException:
+            self._lock.release()
+            raise
 
     # -- bookkeeping ----------------------------------------------------------------------------------------
+    def _open_run_dir(self, resume: bool) -> None:
+        """Resume from the latest checkpoint (or refuse to overwrite one), then make the files match the state."""
+        ckpt_dir = self.run_dir / "checkpoints"
+        for folder in (self.run_dir, ckpt_dir):  # temporary files of killed writes (we hold the lock: no writer)
+            remove_stale_temps(folder)
+        ckpt_path = latest_checkpoint(self.run_dir)
+        if not resume and (ckpt_path is not None or list_checkpoints(ckpt_dir)):
+            # starting over would rotate the old checkpoints away: refuse, and never delete anything ourselves
+            raise FreamerError(
+                f"run dir {self.run_dir} already holds checkpoints; use another run.name or delete it "
+                f"(--no-resume never deletes a run)"
+            )
+        if ckpt_path is not None:
+            self._resume(ckpt_path)
+        # progress.csv = the checkpoint's rows: rows written after it (a kill -9) go, a fresh start truncates
+        self._rewrite_progress(self.run_dir / "progress.csv")
+        self._write_run_files()
+
     def _write_run_files(self) -> None:
-        (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
+        atomic_write_text(self.run_dir / "config.yaml", yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
         import tensordict
         import torchrl
 
@@ -382,19 +355,25 @@ class Trainer:
             "resumed_from": str(self.resumed_from) if self.resumed_from else None,
             "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
         }
-        (self.run_dir / "run_info.json").write_text(json.dumps(info, indent=2))
+        atomic_write_text(self.run_dir / "run_info.json", json.dumps(info, indent=2))
 
     def _resume(self, path: Path) -> None:
         ckpt = load_checkpoint(path)
         check_checkpoint_config(ckpt["config"], config_to_dict(self.cfg), path)
         load_model_state(self.modules, ckpt["model"], path)
-        self.optimizer.load_state_dict(ckpt["optimizer"])
-        self.frames = ckpt["frames"]
-        self.batches = ckpt["batches"]
-        self.stats.load_state_dict(ckpt["stats"])
-        self.rows = ckpt["rows"]
-        self.wall_time = ckpt.get("wall_time", 0.0)
-        torch.set_rng_state(ckpt["torch_rng"])
+        try:
+            self.optimizer.load_state_dict(ckpt["optimizer"])
+            self.frames = int(ckpt["frames"])
+            self.batches = int(ckpt["batches"])
+            self.stats.load_state_dict(ckpt["stats"])
+            self.rows = [dict(r) for r in ckpt["rows"]]
+            self.wall_time = float(ckpt.get("wall_time", 0.0))
+            torch.set_rng_state(ckpt["torch_rng"])
+        except CheckpointError:
+            raise
+        except (KeyError, TypeError, ValueError, RuntimeError) as err:  # a hand-edited or foreign payload
+            detail = f"missing entry {err}" if isinstance(err, KeyError) else str(err).splitlines()[0][:200]
+            raise CheckpointError(f"checkpoint {path} is incomplete or damaged: {detail}") from err
         self.resumed_from = path
         logger.info("resumed from %s at %d frames, %d episodes", path, self.frames, self.stats.episodes)
 
@@ -409,9 +388,9 @@ class Trainer:
             "wall_time": self.wall_time,
             "config": config_to_dict(self.cfg),
             "torch_rng": torch.get_rng_state(),
-            "format": "freamer_rl/1",
+            "format": CHECKPOINT_FORMAT,
         }
-        path = save_checkpoint(self.run_dir, payload)
+        path = save_checkpoint(self.run_dir, payload)  # atomic + rotated; see freamer_rl.checkpoint
         if self.rows:
             plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id)
         return path
@@ -425,7 +404,11 @@ class Trainer:
             kwargs["wandb_kwargs"] = {"offline": os.environ.get("WANDB_MODE", "offline") == "offline",
                                       "project": "freamer_rl", "dir": str(self.run_dir)}
         try:
-            return get_logger(backend, logger_name=str(self.run_dir), experiment_name="metrics", **kwargs)
+            # one folder per attempt (metrics/attempt_NN): an attempt killed after its last checkpoint logged steps
+            # that the resumed attempt logs again; progress.csv is the deduplicated record
+            attempt = next_attempt_name(self.run_dir / "metrics")
+            logger.info("metrics of this attempt (from %d frames): %s", self.frames, self.run_dir / "metrics" / attempt)
+            return get_logger(backend, logger_name=str(self.run_dir / "metrics"), experiment_name=attempt, **kwargs)
         except ImportError as err:
             extra = {"wandb": "wandb", "tensorboard": "tensorboard"}.get(backend, backend)
             raise FreamerError(
@@ -464,31 +447,17 @@ class Trainer:
         data.set(("next", "state_value"), value(nxt)["state_value"])
         return self.gae(data)
 
-    def _sequences(self, data: TensorDictBase) -> TensorDictBase:
-        """``[B, T]`` -> ``[B*T/L, L]`` whole sequences for the sequence replay buffer."""
-        L = self.cfg.ppo.sequence_length
-        data = data.exclude(*_DROP_KEYS)
-        T = data.batch_size[-1]
-        if data.ndim < 2 or T % L:
-            raise RuntimeError(f"collected batch has shape {tuple(data.batch_size)}; expected [..., envs, T] with T % {L} == 0")
-        # multi-process collection stacks workers in front: [workers, envs, T]
-        return data.reshape(-1, T).reshape(-1, T // L, L).reshape(-1, L)
-
     # -- optimisation ---------------------------------------------------------------------------------------
     def _update(self, data: TensorDictBase) -> dict[str, float]:
         p = self.cfg.ppo
-        seqs = self._sequences(data)
-        seqs_per_mb = p.minibatch_size // p.sequence_length
-        rb = ReplayBuffer(
-            storage=LazyTensorStorage(seqs.shape[0]),
-            sampler=SamplerWithoutReplacement(),
-            batch_size=seqs_per_mb,
-        )
+        seqs = split_sequences(data, p.sequence_length)
+        rb = self._sequence_buffer
+        rb.empty()
         rb.extend(seqs)
         sums: dict[str, float] = {}
         count = 0
         for _ in range(p.epochs):
-            for _ in range(max(1, seqs.shape[0] // seqs_per_mb)):
+            for _ in range(max(1, seqs.shape[0] // rb.batch_size)):
                 mb = rb.sample()
                 with set_recurrent_mode(True):
                     mb = self.modules.trunk(mb)
@@ -523,6 +492,20 @@ class Trainer:
 
     # -- main -----------------------------------------------------------------------------------------------
     def train(self) -> dict[str, Any]:
+        """Train up to ``run.total_frames``; returns the summary. Holds the run-dir lock until it returns.
+
+        Ctrl-C (KeyboardInterrupt) and SIGTERM (:class:`~freamer_rl.rundir.Terminated`) write a checkpoint and
+        re-raise; the previous SIGTERM handler is restored afterwards.
+        """
+        self._lock.acquire()  # no-op while __init__'s lock is held; re-locks for a second train() call
+        sigterm = catch_sigterm()
+        try:
+            return self._train()
+        finally:
+            restore_sigterm(sigterm)
+            self._lock.release()
+
+    def _train(self) -> dict[str, Any]:
         cfg = self.cfg
         remaining = cfg.run.total_frames - self.frames
         if remaining <= 0:
@@ -586,11 +569,12 @@ class Trainer:
                     break
                 if self.frames >= cfg.run.total_frames:
                     break
-        except KeyboardInterrupt:
+        except KeyboardInterrupt as err:
             # keep everything learnt so far: rerunning the same command resumes from this checkpoint
             self.wall_time += time.perf_counter() - t_start
             path = self._checkpoint()
-            logger.warning("interrupted at %d frames; saved %s", self.frames, path)
+            how = "terminated by SIGTERM" if isinstance(err, Terminated) else "interrupted"
+            logger.warning("%s at %d frames; saved %s (rerun the same command to resume)", how, self.frames, path)
             raise
         finally:
             collector.shutdown()
@@ -600,21 +584,22 @@ class Trainer:
         self._checkpoint()
         return self._finish()
 
+    def _rewrite_progress(self, path: Path) -> None:
+        """Replace progress.csv with ``self.rows`` atomically (columns of the last row; empty file without rows)."""
+        write_rows_csv(path, self.rows, fields=list(self.rows[-1]) if self.rows else None)
+
     def _append_progress(self, path: Path, row: dict) -> None:
-        new = not path.exists()
-        if not new:
-            with path.open() as f:
+        """Append ``row`` (already the last of ``self.rows``); rewrite the file when its columns differ."""
+        header: list[str] = []
+        if path.exists():
+            with path.open(newline="") as f:
                 header = next(csv.reader(f), [])
-            if header != list(row):
-                # columns changed (e.g. a resumed run with other diagnostics): rewrite from the kept rows
-                new = True
-        with path.open("w" if new else "a", newline="") as f:
-            writer = csv.DictWriter(f, fieldnames=list(row))
-            if new:
-                writer.writeheader()
-                for r in self.rows[:-1]:
-                    writer.writerow({k: r.get(k) for k in row})
-            writer.writerow(row)
+        if header != list(row):
+            # new file, or columns changed (e.g. a resumed run with other diagnostics): rewrite from the kept rows
+            self._rewrite_progress(path)
+            return
+        with path.open("a", newline="") as f:
+            csv.DictWriter(f, fieldnames=list(row)).writerow(row)
 
     def _finish(self) -> dict[str, Any]:
         summary = {
@@ -638,6 +623,14 @@ class Trainer:
 
 
 def train(cfg: FreamerConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
-    """Train FreamerV1 with the config; returns the run summary (also written to ``summary.json``)."""
-    run_dir = Path(run_dir) if run_dir is not None else Path(cfg.run.output_dir) / (cfg.run.name or default_run_name(cfg))
-    return Trainer(cfg, run_dir, resume=resume).train()
+    """Train FreamerV1 with the config; returns the run summary (also written to ``summary.json``).
+
+    ``run_dir`` default: ``run.output_dir/run.name`` (or a name from env id, seed and time). ``resume=False`` on a
+    directory that already holds checkpoints raises FreamerError (nothing is deleted).
+    """
+    if run_dir is None:
+        name = cfg.run.name or default_run_name(cfg)
+        if problem := run_name_problem(name):  # config validation covers run.name; this guards the default too
+            raise ConfigError(f"run.name: {problem}")
+        run_dir = Path(cfg.run.output_dir) / name
+    return Trainer(cfg, Path(run_dir), resume=resume).train()

@@ -69,7 +69,10 @@ from torchrl.envs.transforms import TensorDictPrimer
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
 from freamer_rl import env_registry
+from freamer_rl.checkpoint import read_checkpoint, remove_stale_temps, save_checkpoint
 from freamer_rl.config import ConfigError, _build, apply_overrides
+from freamer_rl.errors import CheckpointError
+from freamer_rl.rundir import RunDirLock, run_name_problem
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES, make_health_encoder
 from freamer_rl.world_model.anomaly import detect_anomalies, plot_anomaly_timeline
 from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv
@@ -93,6 +96,7 @@ __all__ = [
     "HealthPolicy",
     "build_agent",
     "load_agent",
+    "save_agent",
     "make_health_env",
     "train_world_model_step",
     "evaluate_policy",
@@ -247,6 +251,8 @@ class HealthConfig:
 
 def validate_health_config(cfg: HealthConfig) -> None:
     """Cross-field checks (types and unknown keys are checked while building)."""
+    if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
+        raise ConfigError(f"run.name: {problem}")
     if cfg.encoder.kind not in ENCODER_KINDS:
         raise ConfigError(f"encoder.kind: expected one of {', '.join(ENCODER_KINDS)}, got {cfg.encoder.kind!r}")
     for m in cfg.encoder.gate_init:
@@ -560,16 +566,24 @@ def load_agent(path: str | Path) -> HealthAgent:
     path = Path(path)
     if path.is_dir():
         path = path / CHECKPOINT_NAME
-    if not path.is_file():
-        raise FileNotFoundError(f"health checkpoint not found: {path}")
-    payload = torch.load(path, map_location="cpu", weights_only=False)
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
-        raise ValueError(f"{path}: not a health checkpoint (expected format {CHECKPOINT_FORMAT!r})")
-    agent = build_agent(health_config_from_dict(payload["config"]))
-    agent.world_model.load_state_dict(payload["world_model"])
-    agent.actor.load_state_dict(payload["actor"])
-    agent.value.load_state_dict(payload["value"])
+    payload = read_checkpoint(path, fmt=CHECKPOINT_FORMAT)  # weights_only: a crafted file cannot run code
+    try:
+        agent = build_agent(health_config_from_dict(payload["config"]))
+        agent.world_model.load_state_dict(payload["world_model"])
+        agent.actor.load_state_dict(payload["actor"])
+        agent.value.load_state_dict(payload["value"])
+    except (KeyError, ConfigError, RuntimeError, TypeError) as err:  # incomplete, foreign or mismatched payload
+        detail = f"missing entry {err}" if isinstance(err, KeyError) else str(err).splitlines()[0][:200]
+        raise CheckpointError(f"health checkpoint {path} cannot be loaded: {detail}") from err
     return agent
+
+
+def save_agent(agent: HealthAgent, run_dir: Path, **progress: Any) -> Path:
+    """Write ``run_dir/checkpoint.pt`` through the shared atomic writer: a kill leaves the previous good file.
+
+    ``progress`` (``iteration``, ``frames``) is stored beside the weights; :func:`load_agent` ignores it.
+    """
+    return save_checkpoint(run_dir, {**agent.state_dict(), **progress}, filename=CHECKPOINT_NAME)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -840,10 +854,16 @@ def run_health(cfg: HealthConfig, run_dir: str | Path | None = None) -> dict[str
     ``eval_return_mean``/``_std``, ``eval_violations_mean``, ``eval_length_mean``, ``recon_mse`` (+ per key),
     ``imagination_horizon`` (+ ``_std``), ``frames``, ``wall_time_s``, parameter counts, FM gates (foundation).
     """
+    run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
+    with RunDirLock(run_dir):  # a second run on the same directory is refused with a line naming this one
+        remove_stale_temps(run_dir)  # temporary files of a killed checkpoint write
+        return _run_health(cfg, run_dir)
+
+
+def _run_health(cfg: HealthConfig, run_dir: Path) -> dict[str, Any]:
+    """:func:`run_health`'s body, run while holding the run directory's lock."""
     from tqdm.auto import tqdm
 
-    run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
-    run_dir.mkdir(parents=True, exist_ok=True)
     torch.set_num_threads(cfg.run.threads)
     torch.manual_seed(cfg.run.seed)
     np.random.seed(cfg.run.seed)
@@ -925,6 +945,7 @@ def run_health(cfg: HealthConfig, run_dir: str | Path | None = None) -> dict[str
         row["wall_s"] = time.perf_counter() - t_start
         rows.append(row)
         _write_progress(run_dir / "progress.csv", rows)
+        save_agent(agent, run_dir, iteration=it, frames=frames)  # each iteration: a crash keeps a usable agent
         pbar.set_postfix(frames=frames, ret=f"{stats['return']:.1f}", rec=f"{row.get('wm_loss_rec', float('nan')):.2f}")
     collector.shutdown()
 
@@ -932,7 +953,7 @@ def run_health(cfg: HealthConfig, run_dir: str | Path | None = None) -> dict[str
     if rows:
         rows[-1].update({f"eval_{k}": v for k, v in final.items()})
     _write_progress(run_dir / "progress.csv", rows)
-    torch.save(agent.state_dict(), run_dir / CHECKPOINT_NAME)
+    save_agent(agent, run_dir, iteration=cc.iterations, frames=frames)
     wall = time.perf_counter() - t_start
     summary = {
         "encoder": cfg.encoder.kind,
