@@ -3,7 +3,8 @@
     python benchmarks/minigrid_benchmark.py                      # full benchmark (~30-60 min on 2 cores)
     python benchmarks/minigrid_benchmark.py --frames 4096 --seeds 0   # smoke
 
-Writes to ``--out`` (default benchmarks/results/minigrid_n2s4/): ``results.md`` and ``results.csv`` (frames and
+Resumable: rerunning the same command skips finished runs and resumes FreamerV1 runs from their last checkpoint
+(``--fresh`` starts over). Writes to ``--out`` (default benchmarks/results/minigrid_n2s4/): ``results.md`` and ``results.csv`` (frames and
 episodes to reach 95% success over the last 100 episodes, final success, frames/s, the FreamerV1/baseline
 throughput ratio), ``curves.csv`` and ``learning_curves.png``. Runs go two at a time (one per core, one thread
 each), FreamerV1 and the baseline side by side, so both see the same machine load.
@@ -15,7 +16,6 @@ import argparse
 import csv
 import json
 import logging
-import multiprocessing as mp
 import statistics
 import sys
 import time
@@ -24,35 +24,23 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
+from harness import run_freamer, run_jobs  # noqa: E402
+
 DEFAULT_RECIPE = ROOT / "recipes" / "minigrid_multiroom_n2s4.yaml"
 
 
-def _run_job(job: dict) -> dict:
+def _run_ppo_mlp(job: dict) -> dict:
     import torch
 
     torch.set_num_threads(1)
-    logging.basicConfig(level=logging.WARNING)
-    if job["method"] == "ppo_mlp":
-        from ppo_mlp_baseline import train_ppo_mlp
+    from ppo_mlp_baseline import train_ppo_mlp
 
-        return train_ppo_mlp(job["env"], job["seed"], job["frames"])
-    from freamer_rl.config import load_config
-    from freamer_rl.train import Trainer
+    return train_ppo_mlp(job["env"], job["seed"], job["frames"])
 
-    overrides = [
-        f"env.id={job['env']}",
-        f"run.seed={job['seed']}",
-        f"run.total_frames={job['frames']}",
-        "logging.progress_bar=false",
-        "logging.checkpoint_every_frames=1000000000",
-        *job["overrides"],
-    ]
-    cfg = load_config(job["recipe"], overrides)
-    trainer = Trainer(cfg, Path(job["out"]) / "runs" / f"freamer_s{job['seed']}", resume=False)
-    summary = trainer.train()
-    summary["method"] = "freamer"
-    summary["rows"] = [{k: r[k] for k in ("frames", "episodes", "success_rate", "return_mean")} for r in trainer.rows]
-    return summary
+
+def _run_freamer(job: dict) -> dict:
+    """FreamerV1 through the library's Trainer; resumes from the run's last checkpoint (see harness)."""
+    return run_freamer(job)
 
 
 def _fmt(v, nd=0):
@@ -158,25 +146,18 @@ def main(argv=None) -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "minigrid_n2s4"))
     ap.add_argument("--methods", nargs="+", default=["freamer", "ppo_mlp"], choices=["freamer", "ppo_mlp"])
+    ap.add_argument("--fresh", action="store_true", help="discard finished runs of this benchmark and start over")
     ap.add_argument("overrides", nargs="*", help="dotted overrides for the FreamerV1 recipe")
-    args = ap.parse_args(argv)
+    args = ap.parse_intermixed_args(argv)
+    logging.basicConfig(level=logging.WARNING, format="%(message)s")
     out = Path(args.out)
+    fns = {"freamer": _run_freamer, "ppo_mlp": _run_ppo_mlp}
     jobs = [
-        {"method": m, "seed": s, "env": args.env, "frames": args.frames, "recipe": args.recipe,
-         "overrides": args.overrides, "out": str(out)}
+        (fns[m], {"method": m, "seed": s, "env": args.env, "frames": args.frames, "recipe": args.recipe,
+                  "overrides": [f"env.id={args.env}", *args.overrides], "out": str(out)})
         for s in args.seeds for m in args.methods
     ]
-    t0 = time.perf_counter()
-    if args.workers > 1:
-        with mp.get_context("spawn").Pool(args.workers) as pool:
-            results = []
-            for r in pool.imap_unordered(_run_job, jobs):
-                results.append(r)
-                print(f"[{time.perf_counter() - t0:6.0f}s] {r['method']} seed {r['seed']}: success "
-                      f"{r['final_success_rate']:.3f}, episodes to 95% {r.get('episodes_to_95')}, "
-                      f"{r['fps']:.0f} frames/s", flush=True)
-    else:
-        results = [_run_job(j) for j in jobs]
+    results = run_jobs(jobs, workers=args.workers, fresh=args.fresh)
     results.sort(key=lambda r: (r["method"] != "freamer", r["seed"]))
     print(write_report(results, out, args))
     (out / "results.json").write_text(json.dumps([{k: v for k, v in r.items() if k != "rows"} for r in results],

@@ -48,3 +48,21 @@ def test_health_benchmark_report_and_reuse(tmp_path):
     assert (tmp_path / "results.csv").read_text() == first
     health_benchmark.main([*args, "--reuse", "collect.iterations=2"])  # another config: trained again
     assert summary.stat().st_mtime_ns != stamp
+
+
+def test_gym_benchmark_report_and_resume(tmp_path):
+    """FreamerV1 and PPO-MLP on CartPole through the shared harness; a rerun reads finished runs back."""
+    import gym_benchmark
+
+    args = ["recipes/gym/cartpole.yaml", "--frames", "512", "--seeds", "0", "--workers", "1", "--target", "500",
+            "--out", str(tmp_path), "env.num_envs=2", "ppo.frames_per_batch=256", "ppo.minibatch_size=128",
+            "ppo.epochs=1"]  # fmt: skip
+    gym_benchmark.main(args)
+    text = (tmp_path / "results.md").read_text()
+    assert "FreamerV1" in text and "PPO-MLP" in text and "frames to return >= 500" in text
+    assert (tmp_path / "learning_curves.png").is_file()
+    job = tmp_path / "jobs" / "freamer_s0.json"
+    stamp = job.stat().st_mtime_ns
+    gym_benchmark.main(args)  # finished runs are not retrained
+    assert job.stat().st_mtime_ns == stamp
+    assert (tmp_path / "runs" / "freamer_s0" / "checkpoints" / "latest").is_file()  # resumable mid-run too

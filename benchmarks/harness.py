@@ -1,0 +1,148 @@
+"""Shared benchmark machinery: resumable jobs run two at a time, FreamerV1 runs through the library's Trainer, and
+learning curves with min-max bands across seeds.
+
+A job is a dict with at least ``method``, ``seed`` and ``out``. Its result is stored as
+``<out>/jobs/<method>_s<seed>.json`` when it finishes, and a rerun of the same benchmark command skips finished jobs
+(``--fresh`` in the scripts deletes them). FreamerV1 jobs also resume mid-run from their run directory's last
+checkpoint (``<out>/runs/<method>_s<seed>``), so a killed benchmark loses at most one checkpoint interval.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import multiprocessing as mp
+import shutil
+import statistics
+import time
+from pathlib import Path
+from typing import Callable
+
+ROW_KEYS = ("frames", "episodes", "success_rate", "return_mean")
+
+
+def job_path(job: dict) -> Path:
+    return Path(job["out"]) / "jobs" / f"{job['method']}_s{job['seed']}.json"
+
+
+def run_freamer(job: dict) -> dict:
+    """Train FreamerV1 from ``job["recipe"]`` + overrides (seed, frames) with the library's Trainer; resumable."""
+    import torch
+
+    torch.set_num_threads(1)
+    logging.basicConfig(level=logging.WARNING)
+    from freamer_rl.config import load_config
+    from freamer_rl.train import Trainer
+
+    overrides = [
+        f"run.seed={job['seed']}",
+        f"run.total_frames={job['frames']}",
+        "logging.progress_bar=false",
+        f"logging.checkpoint_every_frames={job.get('checkpoint_every', 20_000)}",
+        *job.get("overrides", []),
+    ]
+    cfg = load_config(job["recipe"], overrides)
+    trainer = Trainer(cfg, Path(job["out"]) / "runs" / f"{job['method']}_s{job['seed']}", resume=True)
+    summary = trainer.train()
+    summary["method"] = job["method"]
+    summary["rows"] = [{k: r[k] for k in ROW_KEYS} for r in trainer.rows]
+    return summary
+
+
+def _run_cached(args: tuple[Callable[[dict], dict], dict]) -> dict:
+    fn, job = args
+    path = job_path(job)
+    if path.is_file():
+        return json.loads(path.read_text())
+    result = fn(job)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(result, default=str))
+    tmp.replace(path)
+    return result
+
+
+def run_jobs(jobs: list[tuple[Callable[[dict], dict], dict]], workers: int = 2, fresh: bool = False) -> list[dict]:
+    """Run ``(fn, job)`` pairs, ``workers`` at a time in spawned processes (one thread each); finished jobs are
+    read back from their result files unless ``fresh``."""
+    if fresh:
+        for _, job in jobs:
+            job_path(job).unlink(missing_ok=True)
+            shutil.rmtree(Path(job["out"]) / "runs" / f"{job['method']}_s{job['seed']}", ignore_errors=True)
+    t0 = time.perf_counter()
+    results = []
+
+    def report(r: dict) -> None:
+        results.append(r)
+        ret = r.get("final_return_mean", float("nan"))
+        logging.getLogger("benchmark").warning(
+            "[%6.0fs] %s seed %s: return %.2f, success %.3f, %.0f frames/s", time.perf_counter() - t0,
+            r["method"], r["seed"], ret if ret is not None else float("nan"),
+            r.get("final_success_rate") or float("nan"), r.get("fps") or float("nan"),
+        )
+
+    if workers > 1:
+        with mp.get_context("spawn").Pool(workers) as pool:
+            for r in pool.imap_unordered(_run_cached, jobs):
+                report(r)
+    else:
+        for j in jobs:
+            report(_run_cached(j))
+    return results
+
+
+def first_reaching(rows: list[dict], key: str, target: float) -> tuple[int | None, int | None]:
+    """``(frames, episodes)`` of the first row whose windowed ``key`` is >= ``target``, or ``(None, None)``."""
+    for r in rows:
+        v = r.get(key)
+        if v is not None and not (isinstance(v, float) and math.isnan(v)) and v >= target:
+            return r["frames"], r["episodes"]
+    return None, None
+
+
+def mean_std(values: list) -> str:
+    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
+    if not vals:
+        return "n/a"
+    if len(vals) == 1:
+        return f"{vals[0]:,.2f}"
+    return f"{statistics.mean(vals):,.2f} ± {statistics.stdev(vals):,.2f}"
+
+
+def plot_bands(results: list[dict], path: Path, y_key: str, title: str, *, x_key: str = "frames",
+               target: float | None = None, ylabel: str | None = None, colors: dict | None = None) -> None:
+    """Per method: the mean curve across seeds with a min-max band (curves are put on a common x grid)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    methods = sorted({r["method"] for r in results})
+    for i, m in enumerate(methods):
+        runs = [r for r in results if r["method"] == m and r["rows"]]
+        if not runs:
+            continue
+        x_max = min(r["rows"][-1][x_key] for r in runs)
+        grid = np.linspace(0, x_max, 200)
+        ys = []
+        for r in runs:
+            xs = np.array([row[x_key] for row in r["rows"]], dtype=float)
+            vs = np.array([row[y_key] for row in r["rows"]], dtype=float)
+            ok = ~np.isnan(vs)
+            ys.append(np.interp(grid, xs[ok], vs[ok], left=np.nan) if ok.any() else np.full_like(grid, np.nan))
+        ys = np.array(ys)
+        color = (colors or {}).get(m, f"C{i}")
+        ax.plot(grid, np.nanmean(ys, axis=0), color=color, label=f"{m} (mean of {len(runs)} seeds)")
+        ax.fill_between(grid, np.nanmin(ys, axis=0), np.nanmax(ys, axis=0), color=color, alpha=0.2, lw=0)
+    if target is not None:
+        ax.axhline(target, color="k", ls=":", lw=0.8)
+    ax.set_xlabel(x_key)
+    ax.set_ylabel(ylabel or y_key)
+    ax.set_title(title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
