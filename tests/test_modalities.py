@@ -149,3 +149,15 @@ def test_heads_follow_the_action_spec(action_spec, dist, batch):
     assert action_spec.is_in(out["action"].to(action_spec.dtype))
     assert torch.isfinite(out["action_log_prob"]).all()
     assert m.value(td)["state_value"].shape == (*batch, 1)
+
+
+def test_vector_encoder_rejects_non_finite_input_but_not_under_vmap():
+    from freamer_rl.layers.vector import VectorEncoder
+
+    enc = VectorEncoder(3, D, hidden=8)
+    x = torch.randn(4, 3)
+    x[1, 2] = float("nan")
+    with pytest.raises(ValueError, match="VectorEncoder input 0: 1 non-finite"):
+        enc(x)
+    clean = torch.randn(5, 4, 3)
+    torch.testing.assert_close(torch.vmap(enc)(clean), enc(clean))

@@ -18,6 +18,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from freamer_rl.layers.checks import check_finite
+
 __all__ = ["VectorEncoder", "symlog"]
 
 
@@ -39,6 +41,8 @@ class VectorEncoder(nn.Module):
 
     Shapes:
         forward: ``*xs`` with ``xs[i] [*B, *in_shapes[i]]`` -> ``[*B, out_dim]``.
+
+    A NaN/Inf input raises ``ValueError`` in eager mode (skipped, same maths, under vmap/compile).
     """
 
     def __init__(
@@ -72,6 +76,7 @@ class VectorEncoder(nn.Module):
                 batch_shape = lead
             elif lead != batch_shape:
                 raise ValueError(f"VectorEncoder input {i}: batch dims {tuple(lead)} differ from {tuple(batch_shape)}")
+            check_finite(x, f"VectorEncoder input {i}")
             flat.append(x.reshape(*lead, -1).to(self.inp.weight.dtype))
         h = torch.cat(flat, dim=-1) if len(flat) > 1 else flat[0]
         return self.out(F.silu(self.norm(self.inp(symlog(h)))))
