@@ -6,13 +6,13 @@ imagination throughput of the world-model env vs TorchRL's DreamerEnv at equal s
     python benchmarks/health_benchmark.py --encoders mlp foundation --seeds 0 1 2 collect.iterations=40
     python benchmarks/health_benchmark.py --reuse               # finish an interrupted table; redo only the report
 
-Each (encoder, seed) is one :func:`freamer_rl.health.pipeline.run_health` with ``recipes/health/health_<encoder>.yaml``
+Each (encoder, seed) is one :func:`freamer_rl.health.trainer.run_health` with ``recipes/health/health_<encoder>.yaml``
 (plus the overrides given on the command line), in its own process, ``--workers`` at a time (one thread each).
 Writes to ``--out`` (default ``benchmarks/results/health``):
 
 * ``results.md`` -- the Table 15 layout: per encoder, mean +- std across seeds (sample std, ddof = 1) of the
   real-env evaluation return, violations per episode (steps with HR > 160 bpm), reconstruction MSE (raw units, per
-  feature) and imagination horizon (steps; definition in :mod:`freamer_rl.health.pipeline`), plus the
+  feature) and imagination horizon (steps; definition in :mod:`freamer_rl.world_model.metrics`), plus the
   Foundation / MLP reward ratio and std ratio (the issue's targets), and the imagination throughput table;
 * ``results.csv`` -- one row per run; ``summary.csv`` -- one row per encoder; ``imagination_throughput.json``;
 * ``runs/<encoder>_s<seed>/`` -- each run's directory (progress.csv, summary.json, checkpoint.pt).
@@ -59,19 +59,27 @@ def _run_job(job: dict) -> dict:
 
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING)
-    from freamer_rl.health.pipeline import health_config_to_dict, load_health_config, run_health
+    import shutil
 
-    cfg = load_health_config(
+    from freamer_rl.config import load_config
+    from freamer_rl.health.config import HealthConfig, health_config_to_dict
+    from freamer_rl.health.trainer import run_health
+
+    cfg = load_config(
         ROOT / "recipes" / "health" / f"health_{job['encoder']}.yaml",
         [*job["overrides"], f"run.seed={job['seed']}", "run.progress_bar=false", "run.threads=1"],
+        schema=HealthConfig,
     )
     run_dir = Path(job["out"]) / "runs" / f"{job['encoder']}_s{job['seed']}"
-    if job.get("reuse") and (run_dir / "summary.json").is_file() and (run_dir / "config.yaml").is_file():
-        wanted = yaml.safe_load(yaml.safe_dump(health_config_to_dict(cfg), sort_keys=False))
-        if yaml.safe_load((run_dir / "config.yaml").read_text()) == wanted:
-            logging.getLogger("health_benchmark").warning("reusing the finished run %s (same resolved config)", run_dir)
-            return json.loads((run_dir / "summary.json").read_text())
-    t0 = time.perf_counter()
+    wanted = yaml.safe_load(yaml.safe_dump(health_config_to_dict(cfg), sort_keys=False))
+    same = (run_dir / "config.yaml").is_file() and yaml.safe_load((run_dir / "config.yaml").read_text()) == wanted
+    if job.get("reuse") and same and (run_dir / "summary.json").is_file():
+        logging.getLogger("health_benchmark").warning("reusing the finished run %s (same resolved config)", run_dir)
+        return json.loads((run_dir / "summary.json").read_text())
+    if run_dir.exists() and not (job.get("reuse") and same):
+        # the benchmark owns its run folders: without --reuse, or with another config, a run is trained afresh
+        shutil.rmtree(run_dir)
+    t0 = time.perf_counter()  # with --reuse and the same config, an interrupted run resumes from its checkpoint
     summary = run_health(cfg, run_dir)
     summary["job_wall_s"] = time.perf_counter() - t0
     return summary
@@ -124,7 +132,7 @@ def write_report(results: list[dict], table: list[dict], throughput: dict | None
         "encoder differs. Mean +- std across seeds (sample std). Reward: real-env evaluation return per episode; "
         "Violations: steps with HR > 160 bpm per episode; MSE: reconstruction MSE per feature in raw units on "
         "held-out evaluation episodes; Horizon: open-loop imagined steps before the reward prediction error exceeds "
-        "the tolerance (see freamer_rl.health.pipeline).",
+        "the tolerance (see freamer_rl.world_model.metrics).",
         "",
         "| Encoder | " + " | ".join(label for _, label, _ in METRICS) + " | params (encoder) | wall s / run |",
         "|---|" + "---|" * (len(METRICS) + 2),

@@ -139,3 +139,34 @@ def test_plot_anomaly_timeline_png(tmp_path):
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="actions"):
         plot_anomaly_timeline(hr, actions[:-1], kl, flags, tmp_path / "bad.png")
+
+
+@pytest.mark.parametrize("kind", ["mlp", "cnn", "slotattn", "foundation"])
+def test_transform_works_with_every_health_encoder(kind):
+    """The online filter drives each health encoder through its step API (the foundation encoder's DNC memory is
+    carried in the tensordict) and its KL equals the offline KL of the recorded episode (sequence mode)."""
+    from freamer_rl_envs.health import make_health_env
+
+    from freamer_rl.health.encoders import make_health_encoder
+
+    torch.manual_seed(0)
+    small = {"mlp": {"hidden": 16}, "cnn": {"channels": 4, "hidden": 16},
+             "slotattn": {"dim": 8, "heads": 2, "hr_tokens": 2, "hidden": 16},
+             "foundation": {"dim": 8, "heads": 2, "hr_tokens": 2, "hidden": 16, "fm_hidden": 16, "fm_steps": 2,
+                            "fno_modes": 4, "memory_slots": 4, "memory_width": 6}}  # fmt: skip
+    enc = make_health_encoder(kind, 12, **small[kind])
+    wm = WorldModel({"imu": 36, "hr_features": 16}, 5, encoder=enc, embed_dim=12, deter_dim=16, stoch_dim=4,
+                    hidden=16).eval()  # fmt: skip
+    env = TransformedEnv(make_health_env(batch_size=2, episode_length=40, seed=0, rate_hz=0.2),
+                         KLAnomalyTransform(wm, detector=KLAnomalyDetector(warmup=3)))  # fmt: skip
+    check_env_specs(env)
+    traj = env.rollout(12)
+    assert traj["next", "kl"].shape == (2, 12, 1) and torch.isfinite(traj["next", "kl"]).all()
+    if kind == "foundation":
+        mem = traj["next", "kl_filter", "enc", "memory"]
+        assert mem.shape == (2, 12, 4, 6) and mem.abs().sum() > 0
+        torch.testing.assert_close(traj["kl_filter", "enc", "memory"][:, 1:], mem[:, :-1])
+    with torch.no_grad():
+        offline = wm.episode_kl(traj)
+    torch.testing.assert_close(offline[..., 0], traj["kl"][..., 0, 0], rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(offline[..., 1:], traj["next", "kl"][..., 0], rtol=1e-4, atol=1e-5)

@@ -1,9 +1,14 @@
-"""``freamer-rl`` command line: train, eval, params.
+"""``freamer-rl`` command line: train, eval, params -- for every domain -- and the health anomaly report.
 
     freamer-rl train recipes/minigrid_multiroom_n2s4.yaml ppo.lr=3e-4 run.seed=1
+    freamer-rl train recipes/health/health_foundation.yaml collect.iterations=5
     freamer-rl eval runs/<name>/checkpoints/checkpoint_000100000.pt --episodes 50
+    freamer-rl eval runs/<health run>                     (any domain: the checkpoint records its trainer)
     freamer-rl params recipes/minigrid_multiroom_n2s4_clip.yaml
-    freamer-rl health train recipes/health/health_foundation.yaml
+    freamer-rl health anomaly runs/<health run> --hours 48
+
+``train``/``params`` dispatch on the recipe's ``trainer:`` key and ``eval`` on the checkpoint's trainer through the
+registry :data:`freamer_rl.trainers.TRAINERS` (``freamer-rl health train`` is an alias of ``train``).
 
 User errors (bad recipe key or type, unknown env id, a modality the env lacks, missing CLIP weights, a checkpoint
 from another config or one that is not plain tensors and data, a run directory in use by another run, ``--no-resume``
@@ -18,7 +23,6 @@ import argparse
 import json
 import logging
 import sys
-from pathlib import Path
 
 from freamer_rl.errors import FreamerError
 
@@ -41,7 +45,7 @@ def _parser() -> argparse.ArgumentParser:
         "use another run.name / --run-dir, or delete the old run yourself",
     )
 
-    p_eval = sub.add_parser("eval", help="evaluate a checkpoint")
+    p_eval = sub.add_parser("eval", help="evaluate a checkpoint of any domain")
     p_eval.add_argument("checkpoint", help="a checkpoint .pt file or a run directory (uses its latest checkpoint)")
     p_eval.add_argument("--episodes", type=int, default=20)
     p_eval.add_argument("--deterministic", action="store_true", help="argmax actions instead of sampling")
@@ -49,7 +53,7 @@ def _parser() -> argparse.ArgumentParser:
     p_eval.add_argument("--seed", type=int, default=12345)
 
     p_health = sub.add_parser(
-        "health", help="wearable-health world model: train | anomaly (see freamer-rl health --help)", add_help=False
+        "health", help="wearable-health: anomaly report (and train, an alias of freamer-rl train)", add_help=False
     )
     p_health.add_argument("health_args", nargs=argparse.REMAINDER)
 
@@ -64,38 +68,34 @@ def _parser() -> argparse.ArgumentParser:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "train":
-        from freamer_rl.config import load_config
-        from freamer_rl.train import train
+        from freamer_rl.config import load_config, read_recipe, split_trainer
+        from freamer_rl.trainers import get_trainer
 
+        name, _ = split_trainer(read_recipe(args.recipe, args.overrides), args.recipe)
         cfg = load_config(args.recipe, args.overrides)
-        summary = train(cfg, args.run_dir, resume=not args.no_resume)
-        logger.info("summary: %s", json.dumps(summary))
+        summary = get_trainer(name, args.recipe).train(cfg, args.run_dir, resume=not args.no_resume)
+        logger.info("summary: %s", json.dumps(summary, default=str))
         return 0
     if args.command == "eval":
-        from freamer_rl.checkpoint import latest_checkpoint
-        from freamer_rl.evaluate import evaluate
+        from freamer_rl.evaluate import evaluate_any
 
-        path = Path(args.checkpoint)
-        if path.is_dir():
-            found = latest_checkpoint(path)
-            if found is None:
-                raise FreamerError(f"no checkpoint in run directory {path}")
-            path = found
-        result = evaluate(
-            path, episodes=args.episodes, deterministic=args.deterministic, num_envs=args.num_envs, seed=args.seed
+        result = evaluate_any(
+            args.checkpoint, episodes=args.episodes, deterministic=args.deterministic, num_envs=args.num_envs,
+            seed=args.seed,
         )
-        sys.stdout.write(json.dumps(result, indent=2) + "\n")
+        sys.stdout.write(json.dumps(result, indent=2, default=str) + "\n")
         return 0
     if args.command == "health":
         from freamer_rl.health.cli import main as health_main
 
         return health_main(args.health_args, prog="freamer-rl health")
     if args.command == "params":
-        from freamer_rl.config import load_config
-        from freamer_rl.params import OFFLINE_NOTE, format_parameter_table, offline_parameter_table
+        from freamer_rl.config import load_config, read_recipe, split_trainer
+        from freamer_rl.params import OFFLINE_NOTE, format_parameter_table
+        from freamer_rl.trainers import get_trainer
 
-        cfg = load_config(args.recipe, args.overrides)
-        table = offline_parameter_table(cfg)
+        name, _ = split_trainer(read_recipe(args.recipe, args.overrides), args.recipe)
+        table = get_trainer(name, args.recipe).params(load_config(args.recipe, args.overrides))
         sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n" + OFFLINE_NOTE + "\n")
         return 0
     raise AssertionError(args.command)

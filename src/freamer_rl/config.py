@@ -13,6 +13,7 @@ import types
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any
 
 import yaml
@@ -129,6 +130,8 @@ class PPOConfig:
     """PPO and auxiliary-loss settings (paper Table A20 defaults, tuned where the benchmark showed better)."""
 
     lr: float = 1e-4
+    # "constant", or "linear": decays to 0 at run.total_frames (as in SB3/RL-Zoo's PPO recipes)
+    lr_schedule: str = "constant"
     adam_eps: float = 1e-5
     max_grad_norm: float = 1.0
     clip_epsilon: float = 0.2
@@ -305,23 +308,43 @@ def apply_overrides(data: dict, overrides: list[str]) -> dict:
     return data
 
 
-def config_from_dict(data: dict) -> FreamerConfig:
+#: The recipe's top-level key naming its trainer (an entry of :data:`freamer_rl.trainers.TRAINERS`).
+TRAINER_KEY = "trainer"
+#: The trainer of a recipe without a ``trainer:`` key (every MiniGrid / gym recipe written before the key existed).
+DEFAULT_TRAINER = "minigrid_ppo"
+#: Cross-field validator per schema dataclass, run after the typed build; a domain's config module registers its own
+#: (the health one: ``VALIDATORS[HealthConfig] = validate_health_config``).
+VALIDATORS: dict[type, Callable[[Any], None]] = {}
+
+
+def config_from_dict(data: dict | None, schema: type | None = None) -> Any:
+    """Build and validate a ``schema`` instance (default :class:`FreamerConfig`) from a plain mapping.
+
+    Unknown keys and wrong types raise :class:`ConfigError` naming the dotted field; then the schema's registered
+    validator (:data:`VALIDATORS`) runs its cross-field checks. A top-level ``trainer:`` entry is not a field of
+    any schema and is dropped here (:func:`split_trainer` reads it).
+    """
+    schema = FreamerConfig if schema is None else schema
     if data is None:
         data = {}
     if not isinstance(data, dict):
         raise ConfigError(f"a recipe must be a YAML mapping, got {type(data).__name__}")
-    cfg = _build(FreamerConfig, data)
-    validate(cfg)
+    data = {k: v for k, v in data.items() if k != TRAINER_KEY}
+    cfg = _build(schema, data)
+    if schema not in VALIDATORS:
+        raise ConfigError(f"no validator registered for config schema {schema.__name__} (config.VALIDATORS)")
+    VALIDATORS[schema](cfg)
     return cfg
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> FreamerConfig:
-    """Load a YAML recipe (or the defaults when ``path`` is None) and apply dotted overrides."""
+def read_recipe(path: str | Path | None, overrides: list[str] | None = None) -> dict:
+    """The raw mapping of a YAML recipe (empty when ``path`` is None) with dotted ``overrides`` applied."""
     data: dict = {}
     if path is not None:
         path = Path(path)
         if not path.is_file():
             raise ConfigError(f"recipe file not found: {path}")
+        _check_recipe_file(path)  # duplicate keys, an empty file (helpers above validate)
         try:
             data = yaml.safe_load(path.read_text()) or {}
         except yaml.YAMLError as err:
@@ -330,60 +353,65 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
             raise ConfigError(f"{where}: invalid YAML ({getattr(err, 'problem', err)})") from None
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: a recipe must be a YAML mapping")
-    data = apply_overrides(data, overrides or [])
-    return config_from_dict(data)
+    return apply_overrides(data, overrides or [])
+
+
+def split_trainer(data: dict, source: str = "recipe") -> tuple[str, dict]:
+    """``(trainer name, the rest of the mapping)``; the name defaults to :data:`DEFAULT_TRAINER`."""
+    trainer = data.get(TRAINER_KEY, DEFAULT_TRAINER)
+    if not isinstance(trainer, str):
+        raise ConfigError(f"{source}: {TRAINER_KEY}: expected a trainer name (str), got {type(trainer).__name__}")
+    return trainer, {k: v for k, v in data.items() if k != TRAINER_KEY}
+
+
+def load_config(
+    path: str | Path | None = None, overrides: list[str] | None = None, schema: type | None = None
+) -> Any:
+    """Load a YAML recipe (or the defaults when ``path`` is None), apply dotted overrides, build and validate.
+
+    ``schema`` None: the schema of the recipe's ``trainer:`` (:data:`freamer_rl.trainers.TRAINERS`; no key means
+    :data:`DEFAULT_TRAINER`, whose schema is :class:`FreamerConfig`). An explicit ``schema`` must match the recipe's
+    trainer when the recipe names one (``load_config("recipes/health/health_mlp.yaml", schema=HealthConfig)``).
+    """
+    from freamer_rl.trainers import get_trainer
+
+    source = str(path) if path is not None else "defaults"
+    raw = read_recipe(path, overrides)
+    name, data = split_trainer(raw, source)
+    spec = get_trainer(name, source)
+    if schema is not None and TRAINER_KEY in raw and spec.schema is not schema:
+        raise ConfigError(
+            f"{source}: {TRAINER_KEY}: {name!r} recipes are {spec.schema.__name__}s, not {schema.__name__}s"
+        )
+    return config_from_dict(data, schema if schema is not None else spec.schema)
 
 
 def config_to_dict(cfg: FreamerConfig) -> dict:
     return dataclasses.asdict(cfg)
 
 
+def _check_recipe_file(path: Path) -> None:
+    """Duplicate keys and an empty file (:func:`freamer_rl.config_checks.check_recipe_file`)."""
+    from freamer_rl.config_checks import check_recipe_file
+
+    check_recipe_file(path)
+
+
 def validate(cfg: FreamerConfig) -> None:
-    """Cross-field checks that types alone cannot express."""
-    from freamer_rl.modalities import MODALITIES
-    from freamer_rl.rundir import run_name_problem
+    """Every value of a built config: one ConfigError line naming the dotted field, the value and what is allowed.
 
-    # the run directory is run.output_dir/run.name: a name with separators or '..' would write elsewhere
-    if cfg.run.name and (problem := run_name_problem(cfg.run.name)):
-        raise ConfigError(f"run.name: {problem}")
+    Types and unknown keys are checked while building; here: names and choices, every number's range (generically,
+    :data:`freamer_rl.config_checks.RANGES`), sizes that must fit each other, and the batch layout. CUDA visibility
+    of ``run.device`` is checked when a run starts (:func:`freamer_rl.config_checks.resolve_device`).
+    """
+    from freamer_rl.config_checks import check_model_shapes, check_names, check_numbers
 
-    mods = cfg.model.modalities
-    if not mods:
-        raise ConfigError("model.modalities: at least one modality is required")
-    for m in mods:
-        if m not in MODALITIES:
-            raise ConfigError(f"model.modalities: unknown modality '{m}' (known: {', '.join(MODALITIES)})")
-    for m, keys in cfg.model.observation_keys.items():
-        if m not in mods:
-            raise ConfigError(f"model.observation_keys: '{m}' is not one of model.modalities {mods}")
-        if not keys:
-            raise ConfigError(f"model.observation_keys.{m}: give at least one observation key")
-    if len(set(mods)) != len(mods):
-        raise ConfigError(f"model.modalities: duplicates in {mods}")
-    for m in cfg.model.freeze_encoders:
-        if m not in mods:
-            raise ConfigError(f"model.freeze_encoders: '{m}' is not one of model.modalities {mods}")
-    if cfg.model.vision.backbone not in ("cnn", "clip"):
-        raise ConfigError(f"model.vision.backbone: expected 'cnn' or 'clip', got {cfg.model.vision.backbone!r}")
-    for m in cfg.model.flow.gate_init:
-        if m not in MODALITIES:
-            raise ConfigError(f"model.flow.gate_init: unknown modality '{m}'")
-    if cfg.logging.backend not in ("csv", "wandb", "tensorboard"):
-        raise ConfigError(f"logging.backend: expected csv, wandb or tensorboard, got {cfg.logging.backend!r}")
+    check_names(cfg)
+    check_numbers(cfg)
+    check_model_shapes(cfg)
     p = cfg.ppo
-    positive = {
-        "ppo.frames_per_batch": p.frames_per_batch,
-        "ppo.sequence_length": p.sequence_length,
-        "ppo.minibatch_size": p.minibatch_size,
-        "ppo.epochs": p.epochs,
-        "env.num_envs": cfg.env.num_envs,
-        "collector.num_collectors": cfg.collector.num_collectors,
-        "run.total_frames": cfg.run.total_frames,
-        "model.embed_dim": cfg.model.embed_dim,
-    }
-    for name, value in positive.items():
-        if value <= 0:
-            raise ConfigError(f"{name}: must be positive, got {value}")
+    if p.lr_schedule not in ("constant", "linear"):
+        raise ConfigError(f"ppo.lr_schedule: expected 'constant' or 'linear', got {p.lr_schedule!r}")
     envs_total = cfg.env.num_envs * cfg.collector.num_collectors
     if p.frames_per_batch % envs_total:
         raise ConfigError(
@@ -401,3 +429,6 @@ def validate(cfg: FreamerConfig) -> None:
             f"ppo.minibatch_size ({p.minibatch_size}) must be a multiple of ppo.sequence_length "
             f"({p.sequence_length}) and at most ppo.frames_per_batch ({p.frames_per_batch})"
         )
+
+
+VALIDATORS[FreamerConfig] = validate  # registered here, after validate's definition

@@ -1,4 +1,8 @@
-"""Evaluate a checkpoint: run N episodes with the saved model and report success, return and length."""
+"""Evaluate a checkpoint: run N episodes with the saved model and report success, return and length.
+
+:func:`evaluate_any` takes a checkpoint or run directory of any domain and dispatches on the trainer the checkpoint
+records (:data:`freamer_rl.trainers.TRAINERS`); :func:`evaluate` is the MiniGrid / gym PPO evaluator.
+"""
 
 from __future__ import annotations
 
@@ -75,3 +79,12 @@ def evaluate(
         "deterministic": deterministic,
         "frames_trained": ckpt.get("frames"),
     }
+
+
+def evaluate_any(checkpoint_or_run: str | Path, **options: Any) -> dict[str, Any]:
+    """Evaluate a checkpoint file or a run directory of any domain with its trainer's evaluator (``options``:
+    ``episodes``, ``deterministic``, ``num_envs``, ``seed``)."""
+    from freamer_rl.trainers import get_trainer, resolve_checkpoint, trainer_of_checkpoint
+
+    path = resolve_checkpoint(checkpoint_or_run)
+    return get_trainer(trainer_of_checkpoint(path), str(path)).evaluate(path, **options)

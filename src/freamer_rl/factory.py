@@ -144,7 +144,7 @@ def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.M
     """Layer 1: one encoder per modality (registry), cross-modal attention over the slot modalities, slot pooling."""
     steps: list[nn.Module] = []
     slot_mods = []
-    for m in cfg.modalities:
+    for m in [name for name in MODALITIES if name in cfg.modalities]:  # registry order: see MODALITIES
         entry = MODALITIES[m]
         keys = modality_keys(m, cfg.observation_keys)
         ctx = EncoderContext(name=m, keys=keys, specs=tuple(observation_spec[k] for k in keys), cfg=cfg)

@@ -177,12 +177,13 @@ def _vector_encoder(ctx: EncoderContext) -> nn.Module:
     return VectorEncoder(total, ctx.cfg.embed_dim, hidden=ctx.cfg.vector.hidden, in_shapes=shapes)
 
 
-#: The registry. Order of the stacked modalities is the order of ``model.modalities``, not of this dict.
+#: The registry. Encoders are built in this dict's order (it fixes how the seeded initialisation is drawn, kept as in
+#: earlier releases so a seed gives the same model); modalities are stacked for the fuser in ``model.modalities`` order.
 MODALITIES: dict[str, ModalitySpec] = {
     "state": ModalitySpec(("grid", "direction"), "vector", -3.0, _state_encoder, _check_grid, num_keys=2),
-    "vision": ModalitySpec(("pixels",), "slots", -5.0, _vision_encoder, _check_pixels, num_keys=1),
-    "language": ModalitySpec(("mission_tokens",), "slots", -3.0, _language_encoder, _check_tokens, num_keys=1),
     "reward": ModalitySpec(("reward_history",), "vector", -1.0, _reward_encoder, _check_reward_history, num_keys=1),
+    "language": ModalitySpec(("mission_tokens",), "slots", -3.0, _language_encoder, _check_tokens, num_keys=1),
+    "vision": ModalitySpec(("pixels",), "slots", -5.0, _vision_encoder, _check_pixels, num_keys=1),
     "vector": ModalitySpec(("observation",), "vector", -3.0, _vector_encoder, check_float),
 }
 

@@ -57,8 +57,10 @@ def _is_leaf(cls: type) -> bool:
     return issubclass(cls, NonTensorData) or issubclass(cls, NonTensorStack) or not is_tensor_collection(cls)
 
 
-def sequence_replay_buffer(num_sequences: int, sequences_per_minibatch: int) -> ReplayBuffer:
+def sequence_replay_buffer(num_sequences: int, sequences_per_minibatch: int, device="cpu") -> ReplayBuffer:
     """A replay buffer of ``[L]`` sequences sampled without replacement, ``sequences_per_minibatch`` at a time.
+
+    ``device``: where the storage (and so every sampled minibatch) lives; the device the loss runs on.
 
     Build it once and refill it every batch (``rb.empty(); rb.extend(split_sequences(data, L))``): one sample is a
     ``[n, L]`` minibatch of whole sequences; ``len(rb) // rb.batch_size`` samples make one epoch.
@@ -69,7 +71,7 @@ def sequence_replay_buffer(num_sequences: int, sequences_per_minibatch: int) -> 
             f"({sequences_per_minibatch}) must be >= 1"
         )
     return ReplayBuffer(
-        storage=LazyTensorStorage(num_sequences),
+        storage=LazyTensorStorage(num_sequences, device=device),
         sampler=SamplerWithoutReplacement(),
         batch_size=sequences_per_minibatch,
     )

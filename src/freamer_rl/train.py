@@ -34,8 +34,6 @@ import os
 import subprocess
 import sys
 import time
-from collections import deque
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -50,14 +48,19 @@ from torchrl.objectives.value import GAE
 
 from freamer_rl import env_registry
 from freamer_rl.config import FreamerConfig, config_to_dict
+from freamer_rl.config_checks import resolve_device
 from freamer_rl.errors import CheckpointError, FreamerError
 from freamer_rl.factory import FreamerModules, build_freamer
 from freamer_rl.losses import FreamerAuxLoss
+# re-exported: callers import EpisodeStats, plot_learning_curve and SUCCESS_TARGET from train
+from freamer_rl.metrics import (  # noqa: F401
+    SUCCESS_TARGET, EpisodeStats, ProgressReporter, format_duration, format_rate, plot_learning_curve,
+    quiet_library_logs,
+)
+from freamer_rl.optim import StepStats, optimizer_step
 from freamer_rl.sequences import sequence_replay_buffer, split_sequences
 
 logger = logging.getLogger(__name__)
-
-SUCCESS_TARGET = 0.95
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -132,121 +135,6 @@ def default_run_name(cfg: FreamerConfig) -> str:
     return f"{env_short}-s{cfg.run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
 
 
-@dataclass
-class EpisodeStats:
-    """Running episode statistics over the whole run and a success window of the last ``window`` episodes."""
-
-    window: int = 100
-    # episode-end entries of the "next" tensordict [N] -> bool [N]; None: the task has no success (returns only)
-    success_fn: Any = None
-    episodes: int = 0
-    recent_success: deque = field(default_factory=deque)
-    recent_return: deque = field(default_factory=deque)
-    recent_length: deque = field(default_factory=deque)
-    first_target_frames: int | None = None
-    first_target_episodes: int | None = None
-
-    def update(self, data: TensorDictBase, frames_before: int) -> None:
-        nxt = data["next"]
-        done = nxt["done"].squeeze(-1)
-        if not done.any():
-            return
-        # order episode ends by time, then env; leading dims ([workers, envs]) are flattened into envs
-        T = done.shape[-1]
-        done_bt = done.reshape(-1, T)
-        B = done_bt.shape[0]
-        t_idx = done_bt.nonzero()
-        order = torch.argsort(t_idx[:, 1] * B + t_idx[:, 0])
-        t_idx = t_idx[order]
-
-        def at_ends(key):
-            return nxt[key].reshape(B, T)[t_idx[:, 0], t_idx[:, 1]]
-
-        rets, lens = (at_ends(k) for k in ("episode_reward", "step_count"))
-        succ = None
-        if self.success_fn is not None:
-            ends = nxt.reshape(B, T)[t_idx[:, 0], t_idx[:, 1]]
-            succ = self.success_fn(ends).reshape(-1).tolist()
-        for i in range(t_idx.shape[0]):
-            self.episodes += 1
-            if succ is not None:
-                self._push(self.recent_success, float(succ[i]))
-            self._push(self.recent_return, float(rets[i]))
-            self._push(self.recent_length, float(lens[i]))
-            if (
-                succ is not None
-                and self.first_target_episodes is None
-                and len(self.recent_success) >= self.window
-                and self.success_rate >= SUCCESS_TARGET
-            ):
-                self.first_target_episodes = self.episodes
-                self.first_target_frames = frames_before + int((t_idx[i, 1] + 1) * B)
-
-    def _push(self, q: deque, v: float) -> None:
-        q.append(v)
-        while len(q) > self.window:
-            q.popleft()
-
-    @property
-    def success_rate(self) -> float:
-        return sum(self.recent_success) / len(self.recent_success) if self.recent_success else float("nan")
-
-    @property
-    def mean_return(self) -> float:
-        return sum(self.recent_return) / len(self.recent_return) if self.recent_return else float("nan")
-
-    @property
-    def mean_length(self) -> float:
-        return sum(self.recent_length) / len(self.recent_length) if self.recent_length else float("nan")
-
-    def state_dict(self) -> dict:
-        return {
-            "window": self.window,
-            "episodes": self.episodes,
-            "recent_success": list(self.recent_success),
-            "recent_return": list(self.recent_return),
-            "recent_length": list(self.recent_length),
-            "first_target_frames": self.first_target_frames,
-            "first_target_episodes": self.first_target_episodes,
-        }
-
-    def load_state_dict(self, sd: dict) -> None:
-        self.window = sd["window"]
-        self.episodes = sd["episodes"]
-        self.recent_success = deque(sd["recent_success"])
-        self.recent_return = deque(sd["recent_return"])
-        self.recent_length = deque(sd["recent_length"])
-        self.first_target_frames = sd["first_target_frames"]
-        self.first_target_episodes = sd["first_target_episodes"]
-
-
-def plot_learning_curve(rows: list[dict], path: Path, title: str = "") -> None:
-    """Success rate (last-100 window) and mean return vs frames, one PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    frames = [r["frames"] for r in rows]
-    fig, ax1 = plt.subplots(figsize=(7, 4))
-    ax1.plot(frames, [r["success_rate"] for r in rows], color="tab:green", label="success rate (last 100 ep.)")
-    ax1.set_xlabel("frames")
-    ax1.set_ylabel("success rate")
-    ax1.set_ylim(-0.02, 1.02)
-    ax1.axhline(SUCCESS_TARGET, color="tab:green", ls=":", lw=0.8)
-    ax2 = ax1.twinx()
-    ax2.plot(frames, [r["return_mean"] for r in rows], color="tab:blue", alpha=0.7, label="mean return")
-    ax2.set_ylabel("mean return")
-    lines = ax1.get_lines()[:1] + ax2.get_lines()
-    ax1.legend(lines, [ln.get_label() for ln in lines], loc="lower right")
-    ax1.set_title(title)
-    fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
-
-
 # --------------------------------------------------------------------------------------------------------------
 # Checkpoints
 # --------------------------------------------------------------------------------------------------------------
@@ -275,9 +163,13 @@ class Trainer:
     def __init__(self, cfg: FreamerConfig, run_dir: str | Path, *, resume: bool = True) -> None:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
+        self.device = resolve_device(cfg.run.device)  # before any work: 'cuda' without a visible GPU is one line
         torch.set_num_threads(cfg.run.threads)
         torch.manual_seed(cfg.run.seed)
         self.modules = build_modules(cfg)
+        # model, losses, replay storage and (created after the move) the optimiser state live on run.device;
+        # the envs stay on the CPU (the Collector moves observations to the policy's device)
+        self.modules.actor_value.to(self.device)
         self.modules.actor_value.eval()  # see module docstring: deterministic trunk for consistent log-probs
         p = cfg.ppo
         self.ppo_loss = ClipPPOLoss(
@@ -289,7 +181,7 @@ class Trainer:
             loss_critic_type="l2",
             normalize_advantage=p.normalize_advantage,
             functional=False,
-        )
+        ).to(self.device)
         self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=None, average_gae=False)
         self.aux_loss = FreamerAuxLoss(
             self.modules.refiners,
@@ -298,14 +190,15 @@ class Trainer:
             lambda_smooth=p.lambda_smooth,
             noise_std=cfg.model.flow.noise_std,
             smooth_fuser=None if p.smooth_into_encoders else self.modules.fuser,
-        )
+        ).to(self.device)
         # built once: a new buffer per batch costs time and logs TorchRL's storage INFO line every batch
         self._sequence_buffer = sequence_replay_buffer(
-            p.frames_per_batch // p.sequence_length, p.minibatch_size // p.sequence_length
+            p.frames_per_batch // p.sequence_length, p.minibatch_size // p.sequence_length, device=self.device
         )
         self.params = [q for q in self.modules.actor_value.parameters() if q.requires_grad]
         # fused Adam / foreach clipping: ~4x less optimiser overhead for the ~90 small parameter tensors
         self.optimizer = torch.optim.Adam(self.params, lr=p.lr, eps=p.adam_eps, fused=True)
+        self.step_stats = StepStats("PPO")
         self.frames = 0
         self.batches = 0
         self.stats = EpisodeStats(
@@ -321,6 +214,9 @@ class Trainer:
         except BaseException:
             self._lock.release()
             raise
+        frozen = sum(q.numel() for q in self.modules.actor_value.parameters() if not q.requires_grad)
+        logger.info("run dir %s | %s trainable parameters%s | device %s", self.run_dir,
+                    f"{sum(q.numel() for q in self.params):,}", f" ({frozen:,} frozen)" if frozen else "", self.device)
 
     # -- bookkeeping ----------------------------------------------------------------------------------------
     def _open_run_dir(self, resume: bool) -> None:
@@ -389,10 +285,12 @@ class Trainer:
             "config": config_to_dict(self.cfg),
             "torch_rng": torch.get_rng_state(),
             "format": CHECKPOINT_FORMAT,
+            "trainer": "minigrid_ppo",  # freamer-rl eval dispatches on it (freamer_rl.trainers.TRAINERS)
         }
         path = save_checkpoint(self.run_dir, payload)  # atomic + rotated; see freamer_rl.checkpoint
         if self.rows:
-            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id)
+            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id,
+                                window=self.cfg.logging.success_window)
         return path
 
     def _make_logger(self):
@@ -422,17 +320,19 @@ class Trainer:
         fpb = cfg.ppo.frames_per_batch
         total = math.ceil(remaining / fpb) * fpb
         primers = self.modules.primers()
+        # envs step on the CPU; the policy runs on run.device and the batch is stored there for GAE and the loss
+        devices = {"policy_device": self.device, "env_device": "cpu", "storing_device": self.device}
         if cfg.collector.num_collectors == 1:
             env_fn = functools.partial(make_batched_env, cfg, primers, seed)
             return Collector(
                 env_fn, self.modules.policy, frames_per_batch=fpb, total_frames=total,
-                auto_register_policy_transforms=False,
+                auto_register_policy_transforms=False, **devices,
             )
         n = cfg.collector.num_collectors
         env_fns = [functools.partial(make_batched_env, cfg, primers, seed + 1000 * i) for i in range(n)]
         return Collector(
             env_fns, self.modules.policy, num_collectors=n, sync=True, frames_per_batch=fpb, total_frames=total,
-            auto_register_policy_transforms=False,
+            auto_register_policy_transforms=False, **devices,
         )
 
     @torch.no_grad()
@@ -450,6 +350,10 @@ class Trainer:
     # -- optimisation ---------------------------------------------------------------------------------------
     def _update(self, data: TensorDictBase) -> dict[str, float]:
         p = self.cfg.ppo
+        if p.lr_schedule == "linear":  # lr decays to 0 at run.total_frames (from the frames done, so resumes match)
+            lr = p.lr * max(1.0 - self.frames / self.cfg.run.total_frames, 0.0)
+            for group in self.optimizer.param_groups:
+                group["lr"] = lr
         seqs = split_sequences(data, p.sequence_length)
         rb = self._sequence_buffer
         rb.empty()
@@ -467,10 +371,8 @@ class Trainer:
                 for k in ("loss_fm", "loss_cl", "loss_smooth"):
                     if k in aux_td.keys():
                         total = total + aux_td[k]
-                self.optimizer.zero_grad(set_to_none=True)
-                total.backward()
-                grad_norm = torch.nn.utils.clip_grad_norm_(self.params, p.max_grad_norm, foreach=True)
-                self.optimizer.step()
+                grad_norm = optimizer_step(total, self.optimizer, self.params, p.max_grad_norm, self.step_stats,
+                                           foreach=True)  # a non-finite gradient is skipped and counted
                 logs = {
                     "loss_total": total.detach(),
                     "grad_norm": grad_norm,
@@ -500,7 +402,8 @@ class Trainer:
         self._lock.acquire()  # no-op while __init__'s lock is held; re-locks for a second train() call
         sigterm = catch_sigterm()
         try:
-            return self._train()
+            with quiet_library_logs():  # no per-batch INFO lines of TorchRL in the user's terminal
+                return self._train()
         finally:
             restore_sigterm(sigterm)
             self._lock.release()
@@ -509,18 +412,15 @@ class Trainer:
         cfg = self.cfg
         remaining = cfg.run.total_frames - self.frames
         if remaining <= 0:
-            logger.info("run already has %d frames (run.total_frames=%d): nothing to do", self.frames, cfg.run.total_frames)
+            logger.info("run already has %d frames (run.total_frames=%d): nothing to do", self.frames,
+                        cfg.run.total_frames)
             return self._finish()
         metrics_logger = self._make_logger()
         collector = self._make_collector(remaining)
         progress_path = self.run_dir / "progress.csv"
         next_ckpt = (self.frames // cfg.logging.checkpoint_every_frames + 1) * cfg.logging.checkpoint_every_frames
-        pbar = None
-        if cfg.logging.progress_bar:
-            from tqdm.auto import tqdm
-
-            pbar = tqdm(total=cfg.run.total_frames, initial=self.frames, unit="frames", dynamic_ncols=True,
-                        disable=None)
+        # a tqdm bar on a terminal, else a plain log line every ~10 s
+        progress = ProgressReporter(cfg.run.total_frames, self.frames, bar=cfg.logging.progress_bar)
         t_start = time.perf_counter()
         t_batch = t_start
         try:
@@ -533,17 +433,7 @@ class Trainer:
                 collector.update_policy_weights_()
                 self.batches += 1
                 now = time.perf_counter()
-                row = {
-                    "frames": self.frames,
-                    "episodes": self.stats.episodes,
-                    "success_rate": self.stats.success_rate,
-                    "return_mean": self.stats.mean_return,
-                    "episode_length": self.stats.mean_length,
-                    "fps": data.numel() / max(now - t_batch, 1e-9),
-                    **losses,
-                    **{f"gate_{m}": g for m, g in self.modules.gates().items()},
-                    **self._fallback_counts(),
-                }
+                row = self._batch_row(data.numel() / max(now - t_batch, 1e-9), losses)
                 t_batch = now
                 self.rows.append(row)
                 self._append_progress(progress_path, row)
@@ -551,10 +441,7 @@ class Trainer:
                     for k, v in row.items():
                         if isinstance(v, (int, float)) and math.isfinite(v):
                             metrics_logger.log_scalar(k, v, step=self.frames)
-                if pbar is not None:
-                    pbar.update(data.numel())
-                    pbar.set_postfix(ep=self.stats.episodes, success=f"{self.stats.success_rate:.2f}",
-                                     ret=f"{self.stats.mean_return:.2f}")
+                progress.update(self.frames, data.numel(), self.stats)
                 if self.frames >= next_ckpt:
                     self.wall_time += time.perf_counter() - t_start
                     t_start = time.perf_counter()
@@ -578,11 +465,24 @@ class Trainer:
             raise
         finally:
             collector.shutdown()
-            if pbar is not None:
-                pbar.close()
+            progress.close()
         self.wall_time += time.perf_counter() - t_start
         self._checkpoint()
         return self._finish()
+
+    def _batch_row(self, fps: float, losses: dict[str, float]) -> dict[str, Any]:
+        """The progress.csv row of the batch just trained on."""
+        return {
+            "frames": self.frames,
+            "episodes": self.stats.episodes,
+            "success_rate": self.stats.success_rate,
+            "return_mean": self.stats.mean_return,
+            "episode_length": self.stats.mean_length,
+            "fps": fps,
+            **losses,
+            **{f"gate_{m}": g for m, g in self.modules.gates().items()},
+            **self._fallback_counts(),
+        }
 
     def _rewrite_progress(self, path: Path) -> None:
         """Replace progress.csv with ``self.rows`` atomically (columns of the last row; empty file without rows)."""
@@ -618,7 +518,14 @@ class Trainer:
         }
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         if self.rows:
-            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id)
+            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id,
+                                window=self.cfg.logging.success_window)
+        fps = f" ({summary['fps']:.0f} frames/s)" if summary["fps"] else ""
+        logger.info(
+            "finished: %d frames, %d episodes | success %s, return %s (last %d episodes) | wall time %s%s | run dir %s",
+            self.frames, self.stats.episodes, format_rate(self.stats.success_rate), format_rate(self.stats.mean_return),
+            min(self.stats.episodes, self.stats.window), format_duration(self.wall_time), fps, self.run_dir,
+        )  # fmt: skip
         return summary
 
 

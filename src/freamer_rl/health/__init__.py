@@ -2,18 +2,21 @@
 
 * :mod:`.encoders` -- the four observation encoders of Table 15 (MLP, CNN, SlotAttn+CrossAttn, Foundation), each a
   pluggable encoder of :class:`~freamer_rl.world_model.rssm.WorldModel`.
-* :mod:`.pipeline` -- :class:`HealthConfig` (YAML recipes ``recipes/health/health_*.yaml``), :func:`run_health`
-  (real-env collection -> world model -> imagination PPO -> real-env evaluation) and :func:`anomaly_report`
-  (J.5 / Fig. 4).
+* :mod:`.config` -- :class:`HealthConfig` (YAML recipes ``recipes/health/health_*.yaml``, ``trainer: health``).
+* :mod:`.agent` -- env, world model, actor-value, :class:`HealthPolicy`, :class:`HealthAgent` and its checkpoint.
+* :mod:`.trainer` -- :func:`run_health` (real-env collection -> world model -> imagination PPO -> real-env
+  evaluation; resumable). :mod:`.evaluation` -- the real-env evaluation protocol.
+* :mod:`.anomaly_report` -- :func:`anomaly_report` (J.5 / Fig. 4). :mod:`.pipeline` re-exports all of these.
 * :mod:`.reference` -- fixed and heuristic reference policies (always Continue / Rest / ..., uniform random, a heart-rate
   threshold) evaluated with the same real-env protocol: the yardstick of the imagination-trained policy.
-* :mod:`.cli` -- ``python -m freamer_rl.health.cli {train,anomaly} ...``.
+* :mod:`.cli` -- ``freamer-rl health {train,anomaly} ...`` (``freamer-rl train RECIPE`` trains any domain).
 
 The real env is built through the ``freamer_rl.envs`` entry point ``health`` (the library never imports ``envs``).
 """
 
 from freamer_rl.health.encoders import (
     ENCODER_KINDS,
+    HealthEncoder,
     CNNHealthEncoder,
     FoundationHealthEncoder,
     HealthStage1,
@@ -45,6 +48,7 @@ from freamer_rl.health.reference import (
 
 __all__ = [
     "ENCODER_KINDS",
+    "HealthEncoder",
     "MLPHealthEncoder",
     "CNNHealthEncoder",
     "HealthStage1",

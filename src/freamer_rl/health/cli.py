@@ -1,10 +1,11 @@
 """Command line of the health domain.
 
-    python -m freamer_rl.health.cli train recipes/health/health_foundation.yaml [--run-dir DIR] [key=value ...]
-    python -m freamer_rl.health.cli anomaly RUN_DIR_OR_CHECKPOINT [--hours 48] [--out DIR] [--seed 0]
+    freamer-rl health anomaly RUN_DIR_OR_CHECKPOINT [--hours 48] [--out DIR] [--seed 0]
+    freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
 
-``train`` runs :func:`~freamer_rl.health.pipeline.run_health` and prints the summary as JSON; ``anomaly`` runs
-:func:`~freamer_rl.health.pipeline.anomaly_report` (Fig. 4 picture, default output: the run directory).
+``anomaly`` runs :func:`~freamer_rl.health.anomaly_report.anomaly_report` (Fig. 4 picture, default output: the run
+directory). ``train`` is an alias of ``freamer-rl train`` for health recipes (:func:`~freamer_rl.health.trainer.
+run_health`, resumable) and prints the summary as JSON.
 :func:`main` takes ``argv`` so that ``freamer-rl health ...`` can delegate to it.
 """
 
@@ -26,6 +27,8 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
     p_train.add_argument("recipe", nargs="?", default=None, help="YAML recipe (recipes/health/health_*.yaml)")
     p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. run.seed=1 collect.iterations=5")
     p_train.add_argument("--run-dir", default=None, help="output directory (default runs/health-<kind>-s<seed>-<time>)")
+    p_train.add_argument("--no-resume", action="store_true",
+                         help="start from scratch; refused when the run directory already holds checkpoints")
     p_an = sub.add_parser("anomaly", help="record a long episode, flag KL anomalies, draw the Fig. 4 timeline")
     p_an.add_argument("checkpoint", help="run directory or its checkpoint.pt")
     p_an.add_argument("--hours", type=float, default=48.0)
@@ -38,15 +41,18 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None, prog: str = "freamer-rl health") -> int:
     args = build_parser(prog).parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from freamer_rl.health.pipeline import anomaly_report, load_health_config, run_health
+    from freamer_rl.config import load_config
+    from freamer_rl.health.anomaly_report import anomaly_report
+    from freamer_rl.health.config import HealthConfig
+    from freamer_rl.health.trainer import run_health
 
     try:
         if args.command == "train":
             recipe, overrides = args.recipe, list(args.overrides)
             if recipe is not None and "=" in recipe and not Path(recipe).is_file():
                 recipe, overrides = None, [recipe, *overrides]  # no recipe, only overrides
-            cfg = load_health_config(recipe, overrides)
-            summary = run_health(cfg, args.run_dir)
+            cfg = load_config(recipe, overrides, schema=HealthConfig)
+            summary = run_health(cfg, args.run_dir, resume=not args.no_resume)
         else:
             ckpt = Path(args.checkpoint)
             out = Path(args.out) if args.out else (ckpt if ckpt.is_dir() else ckpt.parent)

@@ -24,7 +24,9 @@ encoder; the HR features are used as they are.
 Common interface (all four): ``out_dim`` (= ``E``), ``obs_keys``, ``forward``, and the online *step* API used when
 filtering a real env step by step: ``state_shapes()`` (``{name: per-element shape}``, empty for the stateless ones),
 ``initial_state(batch_shape)`` and ``step(obs, state, is_first) -> (embed [*B, E], new_state)``; plus
-``aux_loss()`` (``{}`` except for the foundation encoder).
+``aux_loss()`` (``{}`` except for the foundation encoder), ``clear_cache()`` and ``gates`` (``{}`` except for the
+foundation encoder). :class:`HealthEncoder` is that interface as a typed ``Protocol``: the pipeline calls it
+without probing what an encoder can do.
 
 The foundation encoder is recurrent (the DNC memory). Inside :meth:`WorldModel.loss` it receives a TensorDict of
 batch ``[*B, T+1]`` holding the observations and ``"is_init"`` (``[*B, T+1, 1]``, True where a sequence starts) and
@@ -47,11 +49,13 @@ from freamer_rl.layers.dnc import DNCMemory
 from freamer_rl.layers.encoders import CrossModalAttention
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser, smoothness_loss
+from freamer_rl.world_model.encoder import StepEncoder
 from freamer_rl.world_model.rssm import mlp, symlog
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "HealthEncoder",
     "ENCODER_KINDS",
     "IMU_DIM",
     "HR_DIM",
@@ -71,6 +75,11 @@ IMU_SITES, IMU_CHANNELS = 3, 12
 ENCODER_KINDS: tuple[str, ...] = ("mlp", "cnn", "slotattn", "foundation")
 #: Modality names of the foundation encoder (Stage 2 refiners, ``gate_init`` keys), as in CONVENTIONS ("embed", m).
 MODALITIES: tuple[str, ...] = ("imu", "heart_rate")
+
+
+#: What every health encoder can do (the four of :data:`ENCODER_KINDS`; any encoder implementing it plugs into the
+#: health pipeline): the world model's :class:`~freamer_rl.world_model.encoder.StepEncoder` protocol.
+HealthEncoder = StepEncoder
 
 
 def _check(name: str, x: torch.Tensor, dim: int) -> None:
@@ -125,6 +134,14 @@ class _HealthEncoderMixin:
 
     def aux_loss(self) -> dict[str, torch.Tensor]:
         """Auxiliary losses of the last forward pass (none for this encoder)."""
+        return {}
+
+    def clear_cache(self) -> None:
+        """Nothing kept (no auxiliary losses)."""
+
+    @property
+    def gates(self) -> dict[str, float]:
+        """No flow-matching refiners: ``{}``."""
         return {}
 
 

@@ -1,6 +1,8 @@
 """RSSM world model, imagination env + policy optimisation, and KL anomaly detection (paper Appendix J).
 
-* :mod:`.rssm` -- :class:`RSSM` (Eqs. A23-A25), :class:`WorldModel` (loss Eq. A27), :func:`train_world_model`.
+* :mod:`.rssm` -- :class:`RSSM` (Eqs. A23-A25), :class:`WorldModel` (loss Eq. A27); helpers in :mod:`.functional`,
+  default encoder/decoder in :mod:`.obs_nets`, :func:`train_world_model` in :mod:`.training`.
+* :mod:`.metrics` -- reconstruction MSE, imagination horizon, seed latents (evaluation of a trained world model).
 * :mod:`.imagination` -- :class:`RSSMWorldModelEnv` (a TorchRL ``ModelBasedEnvBase``), :class:`ImaginationPPO`.
 * :mod:`.anomaly` -- :class:`KLAnomalyDetector`, :class:`KLAnomalyTransform`, :func:`plot_anomaly_timeline` (J.5).
 * :mod:`.bench_imagination` -- imagined steps/s vs TorchRL's ``DreamerEnv`` (``python -m`` it; not imported here).
@@ -21,13 +23,12 @@ from freamer_rl.world_model.rssm import (
     MLPObsEncoder,
     WorldModel,
     action_to_onehot,
-    as_sequences,
     free_nats_kl,
     gaussian_kl,
     symexp,
     symlog,
-    train_world_model,
 )
+from freamer_rl.world_model.training import as_sequences, train_world_model
 
 __all__ = [
     "RSSM",

@@ -25,6 +25,7 @@ from torch import nn
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
+from freamer_rl.world_model.encoder import StepEncoder
 from freamer_rl.world_model.rssm import WorldModel, gaussian_kl
 
 logger = logging.getLogger(__name__)
@@ -36,6 +37,7 @@ __all__ = [
     "plot_anomaly_timeline",
     "DEFAULT_HR_ZONES",
     "DEFAULT_ACTION_NAMES",
+    "DANGER_HR",
 ]
 
 #: (name, low bpm, high bpm, colour) -- edges as in ``freamer_rl.data.pamap2`` (110 / 135 / 160; danger > 160).
@@ -45,6 +47,8 @@ DEFAULT_HR_ZONES: tuple[tuple[str, float, float, str], ...] = (
     ("Vigorous", 135.0, 160.0, "#ffd1a3"),
     ("Danger", 160.0, math.inf, "#f7a6a6"),
 )
+#: Heart rate above which a step is in the danger zone (bpm): the lower edge of the last zone.
+DANGER_HR: float = DEFAULT_HR_ZONES[-1][1]
 #: The health env's actions, in index order (Appendix C).
 DEFAULT_ACTION_NAMES: tuple[str, ...] = ("Continue", "Rest", "Increase", "Change", "Alert")
 
@@ -153,8 +157,10 @@ class KLAnomalyTransform(Transform):
     Each step it filters the world model's posterior with the new observation -- ``(h, z)`` carried in the
     tensordict under ``deter_key``/``stoch_key`` (root = before the step, ``("next", ...)`` = after; ``step_mdp``
     moves it) -- computes ``KL(q || p)`` of that step and writes ``kl_key`` (float ``[*B, 1]``) and ``anomaly_key``
-    (bool ``[*B, 1]``) from :class:`KLAnomalyDetector`. The observations are read with ``world_model.embed`` (the
-    keys of ``world_model.obs_dims``, or the whole step TensorDict for a TensorDictModule encoder).
+    (bool ``[*B, 1]``) from :class:`KLAnomalyDetector`. The observations are embedded with the encoder's online step
+    (:class:`~freamer_rl.world_model.encoder.StepEncoder`: every health encoder, the recurrent foundation encoder
+    included, and the default MLP encoder); a recurrent encoder's state (e.g. the DNC memory ``[*B, N, W]``) is
+    carried like ``(h, z)`` under ``(*enc_state_key, name)``.
 
     At reset the posterior is computed from the zero state with the first observation (``is_first``); that KL is
     written but neither flagged nor added to the statistics (a fresh episode is not a surprise). The statistics
@@ -162,7 +168,7 @@ class KLAnomalyTransform(Transform):
 
     Args:
         world_model: the trained :class:`WorldModel` (used under ``no_grad``; share it with the learner to follow
-            its updates).
+            its updates). Its encoder must implement :class:`~freamer_rl.world_model.encoder.StepEncoder`.
         action_key: the action at the root of the step tensordict.
         detector: a :class:`KLAnomalyDetector` (default ``KLAnomalyDetector()``: k=2, warm-up 20, Welford).
         sample: feed posterior samples (True) or means (False, default, deterministic) forward.
@@ -177,10 +183,17 @@ class KLAnomalyTransform(Transform):
         anomaly_key: NestedKey = "anomaly",
         deter_key: NestedKey = ("kl_filter", "deter"),
         stoch_key: NestedKey = ("kl_filter", "stoch"),
+        enc_state_key: NestedKey = ("kl_filter", "enc"),
         detector: KLAnomalyDetector | None = None,
         sample: bool = False,
     ) -> None:
-        super().__init__(in_keys=[], out_keys=[kl_key, anomaly_key, deter_key, stoch_key])
+        enc = world_model.encoder
+        if not isinstance(enc, StepEncoder):
+            raise TypeError(f"KLAnomalyTransform: the world model's encoder {type(enc).__name__} does not implement "
+                            "freamer_rl.world_model.encoder.StepEncoder (online step API)")  # fmt: skip
+        root = enc_state_key if isinstance(enc_state_key, tuple) else (enc_state_key,)
+        self.enc_keys = {n: (*root, n) for n in enc.state_shapes()}
+        super().__init__(in_keys=[], out_keys=[kl_key, anomaly_key, deter_key, stoch_key, *self.enc_keys.values()])
         self.world_model = world_model
         self.action_key = action_key
         self.kl_key, self.anomaly_key = kl_key, anomaly_key
@@ -188,12 +201,19 @@ class KLAnomalyTransform(Transform):
         self.detector = detector if detector is not None else KLAnomalyDetector()
         self.sample = sample
 
-    def _filter(self, obs_td: TensorDictBase, h, z, action, is_first) -> tuple[torch.Tensor, ...]:
+    def _filter(self, obs_td: TensorDictBase, h, z, action, is_first, enc_state) -> tuple[torch.Tensor, ...]:
         wm = self.world_model
-        embed = wm.embed(obs_td)
+        enc = wm.encoder
+        embed, enc_state = enc.step({k: obs_td.get(k) for k in enc.obs_keys}, enc_state, is_first)
         out = wm.rssm.obs_step(h, z, action, embed, is_first=is_first, sample=self.sample)
         kl = gaussian_kl(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"])
-        return out["h"], out["z"], kl
+        return out["h"], out["z"], kl, enc_state
+
+    def _write_state(self, td: TensorDictBase, h, z, enc_state) -> None:
+        td.set(self.deter_key, h)
+        td.set(self.stoch_key, z)
+        for n, k in self.enc_keys.items():
+            td.set(k, enc_state[n])
 
     @torch.no_grad()
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
@@ -203,26 +223,26 @@ class KLAnomalyTransform(Transform):
         h, z = wm.rssm.initial_state(bs, device=ref.device, dtype=torch.float32)
         a = torch.zeros(*bs, wm.action_dim, device=ref.device)
         first = torch.ones(bs, dtype=torch.bool, device=ref.device)
-        h, z, kl = self._filter(tensordict_reset, h, z, a, first)
-        tensordict_reset.set(self.deter_key, h)
-        tensordict_reset.set(self.stoch_key, z)
+        enc_state = wm.encoder.initial_state(bs, device=ref.device)
+        h, z, kl, enc_state = self._filter(tensordict_reset, h, z, a, first, enc_state)
+        self._write_state(tensordict_reset, h, z, enc_state)
         tensordict_reset.set(self.kl_key, kl.unsqueeze(-1))
         tensordict_reset.set(self.anomaly_key, torch.zeros(*bs, 1, dtype=torch.bool, device=ref.device))
         return tensordict_reset
 
     @torch.no_grad()
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
-        for k in (self.deter_key, self.stoch_key):
+        for k in (self.deter_key, self.stoch_key, *self.enc_keys.values()):
             if k not in tensordict.keys(True, True):
                 raise KeyError(f"KLAnomalyTransform: {k!r} missing from the step input; reset the env first")
         wm = self.world_model
         h = tensordict.get(self.deter_key)
         z = tensordict.get(self.stoch_key)
+        enc_state = {n: tensordict.get(k) for n, k in self.enc_keys.items()}
         a = wm.action_to_onehot(tensordict.get(self.action_key), tensordict.batch_dims)
-        h, z, kl = self._filter(next_tensordict, h, z, a, None)
+        h, z, kl, enc_state = self._filter(next_tensordict, h, z, a, None, enc_state)
         flags = self.detector.update(kl)
-        next_tensordict.set(self.deter_key, h)
-        next_tensordict.set(self.stoch_key, z)
+        self._write_state(next_tensordict, h, z, enc_state)
         next_tensordict.set(self.kl_key, kl.unsqueeze(-1))
         next_tensordict.set(self.anomaly_key, flags.unsqueeze(-1))
         return next_tensordict
@@ -241,6 +261,8 @@ class KLAnomalyTransform(Transform):
         observation_spec.set(self.anomaly_key, Categorical(2, (*bs, 1), dtype=torch.bool, device=dev))
         observation_spec.set(self.deter_key, Unbounded((*bs, wm.deter_dim), device=dev))
         observation_spec.set(self.stoch_key, Unbounded((*bs, wm.stoch_dim), device=dev))
+        for n, shape in wm.encoder.state_shapes().items():
+            observation_spec.set(self.enc_keys[n], Unbounded((*bs, *shape), device=dev))
         return observation_spec
 
 
@@ -251,6 +273,25 @@ def _np(x):
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().reshape(-1).numpy()
     return np.asarray(x).reshape(-1)
+
+
+def _action_strip(ax, x, act, action_names: Sequence[str]) -> None:
+    """The agent's decisions ``act [T]`` as one coloured strip on ``ax`` with a legend of ``action_names``."""
+    from matplotlib.colors import ListedColormap
+    from matplotlib.patches import Patch
+
+    T = act.shape[0]
+    n_act = max(len(action_names), int(act.max()) + 1 if T else 1)
+    base = ["#4c78a8", "#54a24b", "#f58518", "#b279a2", "#e45756", "#72b7b2", "#9d755d"]
+    cmap = ListedColormap([base[i % len(base)] for i in range(n_act)])
+    extent = (x[0], x[-1] if T > 1 else x[0] + 1, 0, 1)
+    ax.imshow(act[None, :], aspect="auto", cmap=cmap, vmin=-0.5, vmax=n_act - 0.5, extent=extent,
+              interpolation="nearest")
+    ax.set_yticks([])
+    ax.set_ylabel("action", rotation=0, ha="right", va="center")
+    names = list(action_names) + [str(i) for i in range(len(action_names), n_act)]
+    ax.legend(handles=[Patch(color=cmap(i), label=names[i]) for i in range(n_act)], loc="upper center",
+              bbox_to_anchor=(0.5, -0.05), ncol=n_act, fontsize=8, frameon=False)
 
 
 def plot_anomaly_timeline(
@@ -283,9 +324,7 @@ def plot_anomaly_timeline(
     """
     import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
-    from matplotlib.patches import Patch
 
     hr, act, klv, fl = _np(heart_rate).astype(float), _np(actions).astype(int), _np(kl).astype(float), _np(flags)
     T = hr.shape[0]
@@ -309,17 +348,7 @@ def plot_anomaly_timeline(
     ax_hr.set_ylabel("heart rate (bpm)")
     ax_hr.legend(loc="upper right", ncol=len(zones) + 1, fontsize=8)
 
-    n_act = max(len(action_names), int(act.max()) + 1 if T else 1)
-    base = ["#4c78a8", "#54a24b", "#f58518", "#b279a2", "#e45756", "#72b7b2", "#9d755d"]
-    cmap = ListedColormap([base[i % len(base)] for i in range(n_act)])
-    extent = (x[0], x[-1] if T > 1 else x[0] + 1, 0, 1)
-    ax_act.imshow(act[None, :], aspect="auto", cmap=cmap, vmin=-0.5, vmax=n_act - 0.5, extent=extent,
-                  interpolation="nearest")
-    ax_act.set_yticks([])
-    ax_act.set_ylabel("action", rotation=0, ha="right", va="center")
-    names = list(action_names) + [str(i) for i in range(len(action_names), n_act)]
-    ax_act.legend(handles=[Patch(color=cmap(i), label=names[i]) for i in range(n_act)], loc="upper center",
-                  bbox_to_anchor=(0.5, -0.05), ncol=n_act, fontsize=8, frameon=False)
+    _action_strip(ax_act, x, act, action_names)
 
     ax_kl.plot(x, klv, color="#4c78a8", lw=1.0, label="KL(q || p)")
     if threshold is not None:

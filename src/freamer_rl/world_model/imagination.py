@@ -28,6 +28,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE, TDLambdaEstimator
 
+from freamer_rl.optim import StepStats, optimizer_step
 from freamer_rl.world_model.rssm import WorldModel
 
 logger = logging.getLogger(__name__)
@@ -260,6 +261,7 @@ class ImaginationPPO:
         seen: set[int] = set()
         self._params = [p for p in params if p.requires_grad and not (id(p) in seen or seen.add(id(p)))]
         self.optimizer = optimizer if optimizer is not None else torch.optim.Adam(self._params, lr=lr, eps=adam_eps)
+        self.step_stats = StepStats("imagination PPO")
 
     @torch.no_grad()
     def imagine(self, seed_latents: TensorDictBase) -> TensorDictBase:
@@ -288,15 +290,13 @@ class ImaginationPPO:
             metrics.update(self._ppo_epochs(data))
         return metrics
 
-    def _clip_and_step(self) -> float:
-        gn = torch.nn.utils.clip_grad_norm_(self._params, self.max_grad_norm)
-        if torch.isfinite(gn):
-            self.optimizer.step()
-        else:
-            self.skipped_updates = getattr(self, "skipped_updates", 0) + 1
-            logger.warning("ImaginationPPO: non-finite gradient norm; update skipped (%d so far)", self.skipped_updates)
-        self.optimizer.zero_grad(set_to_none=True)
-        return float(gn)
+    @property
+    def skipped_updates(self) -> int:
+        """Updates skipped for a non-finite gradient (:func:`~freamer_rl.optim.optimizer_step`)."""
+        return self.step_stats.skipped
+
+    def _step(self, loss: torch.Tensor) -> float:
+        return float(optimizer_step(loss, self.optimizer, self._params, self.max_grad_norm, self.step_stats))
 
     def _ppo_epochs(self, data: TensorDictBase) -> dict[str, float]:
         n = data.shape[0]
@@ -309,8 +309,7 @@ class ImaginationPPO:
                 sub = data[perm[start : start + mb]]
                 out = self.loss_module(sub)
                 loss = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
-                loss.backward()
-                gn = self._clip_and_step()
+                gn = self._step(loss)
                 for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
                     if k in out.keys():
                         sums[k] = sums.get(k, 0.0) + float(out[k].detach().mean())
@@ -332,8 +331,7 @@ class ImaginationPPO:
         loss_entropy = -self.entropy_coeff * entropy.mean()
         value = self.value(td.select(*self.value.in_keys)).get(self.value.out_keys[0])
         loss_critic = self.critic_coeff * 0.5 * (value - target).pow(2).mean()
-        (loss_actor + loss_entropy + loss_critic).backward()
-        gn = self._clip_and_step()
+        gn = self._step(loss_actor + loss_entropy + loss_critic)
         return {
             "loss_actor": float(loss_actor.detach()),
             "loss_critic": float(loss_critic.detach()),

@@ -26,13 +26,12 @@ Training from a replay buffer (what the training loop does)::
     losses = world_model.loss(batch)                       # dict: loss_rec, loss_kl, loss_rew, loss_con, total
     losses["total"].backward()
 
-or simply ``train_world_model(world_model, rb, optimizer, steps)``.
+or simply ``train_world_model(world_model, rb, optimizer, steps)`` (:mod:`.training`).
 """
 
 from __future__ import annotations
 
 import logging
-import math
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -41,6 +40,11 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
+
+from freamer_rl.world_model.functional import (  # noqa: F401  (re-exported: the public names stay importable here)
+    _check_last_dim, _flat, action_to_onehot, free_nats_kl, gaussian_kl, mlp, symexp, symlog,
+)
+from freamer_rl.world_model.obs_nets import MLPObsDecoder, MLPObsEncoder
 
 logger = logging.getLogger(__name__)
 
@@ -54,90 +58,7 @@ __all__ = [
     "symlog",
     "symexp",
     "action_to_onehot",
-    "as_sequences",
-    "train_world_model",
 ]
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# helpers
-# ----------------------------------------------------------------------------------------------------------------------
-def symlog(x: torch.Tensor) -> torch.Tensor:
-    """``sign(x) * log(1 + |x|)`` (DreamerV3): squashes raw sensor scales (m/s^2, bpm) for the MLPs."""
-    return torch.sign(x) * torch.log1p(x.abs())
-
-
-def symexp(x: torch.Tensor) -> torch.Tensor:
-    """Inverse of :func:`symlog`."""
-    return torch.sign(x) * torch.expm1(x.abs())
-
-
-def mlp(in_dim: int, hidden: int, out_dim: int, layers: int = 2) -> nn.Sequential:
-    """``layers`` x (Linear -> LayerNorm -> SiLU) then a Linear to ``out_dim``. ``[*B, in_dim] -> [*B, out_dim]``."""
-    mods: list[nn.Module] = []
-    d = in_dim
-    for _ in range(layers):
-        mods += [nn.Linear(d, hidden), nn.LayerNorm(hidden), nn.SiLU()]
-        d = hidden
-    mods.append(nn.Linear(d, out_dim))
-    return nn.Sequential(*mods)
-
-
-def _check_last_dim(name: str, x: torch.Tensor, expected: int) -> None:
-    if x.shape[-1] != expected:
-        raise ValueError(f"{name}: expected last dim {expected}, got shape {tuple(x.shape)}")
-
-
-def gaussian_kl(
-    mean_q: torch.Tensor, std_q: torch.Tensor, mean_p: torch.Tensor, std_p: torch.Tensor
-) -> torch.Tensor:
-    """Closed-form ``KL(N(mean_q, std_q) || N(mean_p, std_p))`` of diagonal Gaussians, summed over the last dim.
-
-    Shapes ``[*B, S]`` -> ``[*B]``. Per dim: ``log(sp/sq) + (sq^2 + (mq - mp)^2) / (2 sp^2) - 1/2``.
-    """
-    var_ratio = (std_q / std_p).pow(2)
-    mahal = ((mean_q - mean_p) / std_p).pow(2)
-    return 0.5 * (var_ratio + mahal - 1.0 - torch.log(var_ratio)).sum(-1)
-
-
-def free_nats_kl(kl_per_step: torch.Tensor, free_nats: float = 1.0, mask: torch.Tensor | None = None) -> torch.Tensor:
-    """``mean(max(KL_t, free_nats))``: the per-step KL (already summed over latent dims) is clamped at
-    ``free_nats`` *before* averaging over batch and time (Eq. A27 with Table A20's free nats 1.0).
-
-    ``kl_per_step``: ``[*B]``; ``mask`` (optional bool ``[*B]``) selects the steps that count.
-    """
-    clamped = kl_per_step.clamp(min=free_nats)
-    if mask is None:
-        return clamped.mean()
-    return clamped[mask].mean()
-
-
-def _flat(x: torch.Tensor, n_trailing: int = 1) -> tuple[torch.Tensor, torch.Size]:
-    lead = x.shape[: x.ndim - n_trailing]
-    return x.reshape(-1, *x.shape[x.ndim - n_trailing :]), lead
-
-
-def action_to_onehot(action: torch.Tensor, action_dim: int, batch_ndim: int) -> torch.Tensor:
-    """Integer actions ``[*B]`` or ``[*B, 1]`` -> float one-hot ``[*B, action_dim]``; float actions ``[*B, A]``
-    (one-hot or continuous vectors) pass through after a shape check."""
-    if action.dtype.is_floating_point:
-        if action.ndim != batch_ndim + 1 or action.shape[-1] != action_dim:
-            raise ValueError(
-                f"action: expected a float tensor of shape [*B, {action_dim}] with {batch_ndim} batch dims, "
-                f"got {tuple(action.shape)}"
-            )
-        return action
-    if action.ndim == batch_ndim + 1 and action.shape[-1] == 1:
-        action = action.squeeze(-1)
-    if action.ndim != batch_ndim:
-        raise ValueError(
-            f"action: expected integer indices of shape [*B] or [*B, 1] with {batch_ndim} batch dims, "
-            f"got {tuple(action.shape)}"
-        )
-    if action.numel() and (int(action.min()) < 0 or int(action.max()) >= action_dim):
-        raise ValueError(f"action: indices must lie in [0, {action_dim}), got range "
-                         f"[{int(action.min())}, {int(action.max())}]")
-    return F.one_hot(action.long(), action_dim).float()
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -303,56 +224,6 @@ class RSSM(nn.Module):
             for k, v in step.items():
                 outs.setdefault(k, []).append(v)
         return {k: torch.stack(v, dim=1).reshape(*lead, T, -1) for k, v in outs.items()}
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# encoder / decoder
-# ----------------------------------------------------------------------------------------------------------------------
-class MLPObsEncoder(nn.Module):
-    """Default observation encoder: concatenation of the observation keys -> MLP -> ``[*B, out_dim]``.
-
-    Args:
-        obs_dims: ``{key: feature size}``; the keys are read (in this order) from the observation mapping.
-        out_dim: embedding size ``E``.
-        hidden, layers: MLP width and depth.
-        symlog_inputs: apply :func:`symlog` to the inputs (robust to raw m/s^2 and bpm scales).
-
-    Forward: ``obs`` is any mapping (dict or TensorDict) ``key -> [*B, d_key]``; returns ``[*B, out_dim]``.
-    """
-
-    def __init__(
-        self, obs_dims: Mapping[NestedKey, int], out_dim: int, hidden: int = 256, layers: int = 2,
-        symlog_inputs: bool = True,
-    ) -> None:
-        super().__init__()
-        if not obs_dims:
-            raise ValueError("obs_dims: expected at least one observation key, got an empty mapping")
-        self.obs_dims = dict(obs_dims)
-        self.out_dim = out_dim
-        self.symlog_inputs = symlog_inputs
-        self.net = mlp(sum(self.obs_dims.values()), hidden, out_dim, layers)
-
-    def forward(self, obs: Mapping[NestedKey, torch.Tensor]) -> torch.Tensor:
-        parts = []
-        for k, d in self.obs_dims.items():
-            x = obs[k]
-            _check_last_dim(f"observation {k!r}", x, d)
-            parts.append(x.float())
-        x = torch.cat(parts, dim=-1)
-        return self.net(symlog(x) if self.symlog_inputs else x)
-
-
-class MLPObsDecoder(nn.Module):
-    """Default decoder: latent ``[*B, D + S]`` -> ``{key: [*B, d_key]}`` (one MLP, output split per key)."""
-
-    def __init__(self, latent_dim: int, obs_dims: Mapping[NestedKey, int], hidden: int = 256, layers: int = 2):
-        super().__init__()
-        self.obs_dims = dict(obs_dims)
-        self.net = mlp(latent_dim, hidden, sum(self.obs_dims.values()), layers)
-
-    def forward(self, latent: torch.Tensor) -> dict[NestedKey, torch.Tensor]:
-        out = self.net(latent).split(list(self.obs_dims.values()), dim=-1)
-        return dict(zip(self.obs_dims.keys(), out))
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -654,69 +525,3 @@ class WorldModel(nn.Module):
         """
         out, _ = self.observe(episode, sample=False)
         return gaussian_kl(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"])
-
-
-# ----------------------------------------------------------------------------------------------------------------------
-# training from a replay buffer
-# ----------------------------------------------------------------------------------------------------------------------
-def as_sequences(batch: TensorDictBase, seq_len: int | None = None, replay_buffer=None) -> TensorDictBase:
-    """Reshape a flat ``[num_slices * T]`` sample of a ``SliceSampler`` to ``[num_slices, T]``.
-
-    ``seq_len`` defaults to the sampler's ``slice_len`` (or ``batch_size // num_slices``). A batch that already
-    has two or more batch dims is returned unchanged.
-    """
-    if batch.batch_dims >= 2:
-        return batch
-    if seq_len is None:
-        sampler = getattr(replay_buffer, "sampler", None) if replay_buffer is not None else None
-        if sampler is None:
-            raise ValueError("as_sequences: pass seq_len or the replay_buffer whose SliceSampler produced the batch")
-        seq_len = getattr(sampler, "slice_len", None)
-        if seq_len is None:
-            num_slices = getattr(sampler, "num_slices", None)
-            if num_slices is None:
-                raise ValueError("as_sequences: the replay buffer's sampler has neither slice_len nor num_slices")
-            seq_len = batch.shape[0] // num_slices
-    if batch.shape[0] % seq_len:
-        raise ValueError(f"as_sequences: batch of {batch.shape[0]} steps is not divisible by seq_len={seq_len}")
-    return batch.reshape(-1, seq_len)
-
-
-def train_world_model(
-    world_model: WorldModel,
-    replay_buffer,
-    optimizer: torch.optim.Optimizer,
-    steps: int,
-    *,
-    seq_len: int | None = None,
-    grad_clip: float | None = 1.0,
-    log_every: int = 0,
-) -> list[dict[str, float]]:
-    """``steps`` gradient steps of Eq. A27 on ``[num_slices, T]`` slices sampled from ``replay_buffer``
-    (a TorchRL ``ReplayBuffer`` with a ``SliceSampler``). Gradient-norm clipping at ``grad_clip`` (1.0, Table A20).
-
-    Returns one dict of float metrics per step (keys of :meth:`WorldModel.loss` plus ``grad_norm``).
-    """
-    history: list[dict[str, float]] = []
-    params = [p for p in world_model.parameters() if p.requires_grad]
-    world_model.train()
-    for i in range(steps):
-        batch = as_sequences(replay_buffer.sample(), seq_len, replay_buffer)
-        losses = world_model.loss(batch)
-        optimizer.zero_grad(set_to_none=True)
-        losses["total"].backward()
-        gn = torch.nn.utils.clip_grad_norm_(params, grad_clip if grad_clip is not None else math.inf)
-        if not torch.isfinite(gn):
-            world_model.skipped_updates = getattr(world_model, "skipped_updates", 0) + 1
-            logger.warning(
-                "train_world_model: non-finite gradient norm at step %d; update skipped (%d so far)",
-                i, world_model.skipped_updates,
-            )
-        else:
-            optimizer.step()
-        rec = {k: float(v.detach()) for k, v in losses.items()}
-        rec["grad_norm"] = float(gn)
-        history.append(rec)
-        if log_every and (i + 1) % log_every == 0:
-            logger.info("world model step %d: %s", i + 1, {k: round(v, 4) for k, v in rec.items()})
-    return history

@@ -1,0 +1,278 @@
+"""Typed configuration of the health domain (:class:`HealthConfig`, recipes ``recipes/health/health_*.yaml``).
+
+Loaded by the one loader of :mod:`freamer_rl.config` (``load_config(path, overrides, schema=HealthConfig)``, or with no
+``schema`` from a recipe holding ``trainer: health``); this module only declares the schema, registers its cross-field
+validator and keeps the domain's constants in one place.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import torch
+
+from freamer_rl.config import VALIDATORS, ConfigError, config_from_dict, load_config
+from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
+from freamer_rl.rundir import run_name_problem
+
+__all__ = [
+    "HealthEnvConfig",
+    "HealthEncoderConfig",
+    "HealthWorldModelConfig",
+    "HealthImaginationConfig",
+    "HealthCollectConfig",
+    "HealthEvalConfig",
+    "HealthRunConfig",
+    "HealthConfig",
+    "validate_health_config",
+    "load_health_config",
+    "health_config_from_dict",
+    "health_config_to_dict",
+    "explore_probs",
+    "NUM_ACTIONS",
+    "OBS_KEYS",
+]
+
+#: Observation keys the world model reads and reconstructs (their sizes are read from the env's observation spec).
+OBS_KEYS: tuple[str, ...] = ("imu", "hr_features")
+#: Number of actions the schema validates ``collect.explore_probs`` against; :func:`~freamer_rl.health.agent.env_dims`
+#: checks it against the env's action spec when an agent is built.
+NUM_ACTIONS = 5
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# schema
+# ----------------------------------------------------------------------------------------------------------------------
+@dataclass
+class HealthEnvConfig:
+    """Real health env (``freamer_rl_envs.health.make_health_env`` through the ``health`` adapter entry point)."""
+
+    adapter: str = "health"
+    id: str = "pamap2-health"
+    data_dir: str | None = None  # PAMAP2 root or Protocol folder; None = embedded synthetic subjects
+    subjects: list[int] | None = None
+    num_envs: int = 8  # batch of the training env (simultaneous subjects)
+    episode_length: int = 120  # steps (0.2 Hz: 10 minutes)
+    rate_hz: float = 0.2  # 5 s a step, so that the imagination horizon spans the heart-rate dynamics
+    reward_weights: list[float] = field(default_factory=lambda: [2.0, 1.0, 0.5])  # Eq. A11
+    synthetic_duration_s: float = 1800.0
+    data_seed: int = 0
+
+
+@dataclass
+class HealthEncoderConfig:
+    """Observation encoder (Table 15 rows); fields not used by ``kind`` are ignored."""
+
+    kind: str = "foundation"  # mlp | cnn | slotattn | foundation
+    embed_dim: int = 128  # E, the RSSM's o_t^embed size
+    hidden: int = 128  # MLP / HR-MLP width
+    mlp_layers: int = 2  # mlp
+    cnn_channels: int = 32  # cnn
+    dim: int = 64  # slotattn / foundation: modality width d
+    heads: int = 4
+    hr_tokens: int = 4
+    fm_hidden: int = 128  # foundation: velocity MLP width (Table A20)
+    fm_steps: int = 4  # Euler steps (Table A20)
+    gate_init: dict[str, float] = field(default_factory=lambda: {"imu": -1.0, "heart_rate": -1.0})
+    fm_noise_std: float = 1.0
+    fno_modes: int = 16
+    fno_residual_scale: float = 0.1
+    memory_slots: int = 32
+    memory_width: int = 64
+
+
+@dataclass
+class HealthWorldModelConfig:
+    """RSSM world model (Appendix J.1/J.3, Table A20) and its training."""
+
+    deter_dim: int = 256
+    stoch_dim: int = 64
+    hidden: int = 256
+    beta: float = 1.0  # J.3 (Table A20 lists 0.5)
+    free_nats: float = 1.0
+    lr: float = 1e-4
+    adam_eps: float = 1e-5
+    grad_clip: float = 1.0
+    batch_size: int = 16  # slices per gradient step
+    seq_len: int = 32  # steps per slice (the loss sees T + 1 = 33 observations)
+    train_steps: int = 50  # gradient steps per iteration
+    prefill_train_steps: int = 0  # extra gradient steps right after the random prefill
+    kl_balance: float | None = None  # None: the paper's KL(q || p); alpha: alpha KL(sg(q)||p) + (1-alpha) KL(q||sg(p))
+    recon_norm: bool = True  # standardised reconstruction targets (WorldModel.recon_norm: keeps the HR features)
+    reward_scale: float = 1.0  # weight of L_rew in Eq. A27
+    lambda_fm: float = 0.1  # lambda_FM(WM), Table A20 (foundation encoder only)
+    lambda_smooth: float = 1e-3  # lambda_s of Eq. A16 (foundation encoder only)
+
+
+@dataclass
+class HealthImaginationConfig:
+    """Policy learning in imagination (Appendix J.4; Table A20 PPO settings)."""
+
+    horizon: int = 15
+    lr: float = 1e-4
+    adam_eps: float = 1e-5
+    clip_epsilon: float = 0.2
+    epochs: int = 4
+    num_minibatches: int = 4
+    gamma: float = 0.99
+    lmbda: float = 0.95
+    entropy_coeff: float = 0.01
+    critic_coeff: float = 0.5
+    max_grad_norm: float = 1.0
+    num_seeds: int = 256  # posterior latents per update (imagined rollouts: num_seeds x horizon)
+    updates: int = 4  # ImaginationPPO updates per iteration
+    lambda_return_actor_critic: bool = False
+    done_mode: str = "threshold"  # threshold | sample | never
+    policy_hidden: int = 128
+
+
+@dataclass
+class HealthCollectConfig:
+    iterations: int = 20
+    prefill_frames: int = 2048  # uniformly random actions first
+    frames_per_iter: int = 512
+    # epsilon of the collection policy after the prefill: keeps every action in the replay data so that the world
+    # model keeps learning what each intervention does (without it the data collapses onto the policy's action)
+    random_action_prob: float = 0.0
+    # distribution of the random actions (prefill and epsilon), over (Continue, Rest, Increase, Change, Alert);
+    # null = uniform. Uniform random data is ~98 % Alert-hold / level <= 0.25 (an Alert every 5 steps on average,
+    # each holding the level <= 0.25 for 30 s): the world model then never sees the planned intensity
+    explore_probs: list[float] | None = None
+    buffer_capacity: int = 200_000
+
+
+@dataclass
+class HealthEvalConfig:
+    num_envs: int = 8  # evaluation episodes (one per env)
+    every: int = 0  # evaluate every N iterations (0: only at the end)
+    deterministic: bool = True  # act with the mode of the policy
+    seed: int = 12345  # env seed of the evaluation episodes: the same episodes for every run, seed and encoder
+    mse_windows: int = 64
+    horizon_context: int = 8
+    horizon_max: int = 48
+    horizon_reward_tol: float = 0.5
+    horizon_windows: int = 64
+
+
+@dataclass
+class HealthRunConfig:
+    seed: int = 0
+    threads: int = 1
+    output_dir: str = "runs"
+    name: str | None = None
+    progress_bar: bool = True
+    logger: str = "csv"  # TorchRL logger of metrics/attempt_NN: csv | wandb | tensorboard
+
+
+@dataclass
+class HealthConfig:
+    env: HealthEnvConfig = field(default_factory=HealthEnvConfig)
+    encoder: HealthEncoderConfig = field(default_factory=HealthEncoderConfig)
+    world_model: HealthWorldModelConfig = field(default_factory=HealthWorldModelConfig)
+    imagination: HealthImaginationConfig = field(default_factory=HealthImaginationConfig)
+    collect: HealthCollectConfig = field(default_factory=HealthCollectConfig)
+    eval: HealthEvalConfig = field(default_factory=HealthEvalConfig)
+    run: HealthRunConfig = field(default_factory=HealthRunConfig)
+
+
+def validate_health_config(cfg: HealthConfig) -> None:
+    """Cross-field checks (types and unknown keys are checked while building)."""
+    if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
+        raise ConfigError(f"run.name: {problem}")
+    if cfg.run.logger not in ("csv", "wandb", "tensorboard"):
+        raise ConfigError(f"run.logger: expected csv, wandb or tensorboard, got {cfg.run.logger!r}")
+    if cfg.encoder.kind not in ENCODER_KINDS:
+        raise ConfigError(f"encoder.kind: expected one of {', '.join(ENCODER_KINDS)}, got {cfg.encoder.kind!r}")
+    for m in cfg.encoder.gate_init:
+        if m not in MODALITIES:
+            raise ConfigError(f"encoder.gate_init: unknown modality {m!r} (known: {', '.join(MODALITIES)})")
+    if cfg.imagination.done_mode not in ("threshold", "sample", "never"):
+        raise ConfigError(f"imagination.done_mode: expected threshold, sample or never, got "
+                          f"{cfg.imagination.done_mode!r}")  # fmt: skip
+    if len(cfg.env.reward_weights) != 3:
+        raise ConfigError(f"env.reward_weights: expected 3 numbers (w_safe, w_target, w_fatigue), got "
+                          f"{cfg.env.reward_weights!r}")  # fmt: skip
+    positive = {
+        "env.num_envs": cfg.env.num_envs, "env.episode_length": cfg.env.episode_length, "env.rate_hz": cfg.env.rate_hz,
+        "encoder.embed_dim": cfg.encoder.embed_dim, "encoder.hidden": cfg.encoder.hidden,
+        "encoder.dim": cfg.encoder.dim,
+        "world_model.deter_dim": cfg.world_model.deter_dim, "world_model.stoch_dim": cfg.world_model.stoch_dim,
+        "world_model.hidden": cfg.world_model.hidden, "world_model.lr": cfg.world_model.lr,
+        "world_model.batch_size": cfg.world_model.batch_size, "world_model.seq_len": cfg.world_model.seq_len,
+        "imagination.horizon": cfg.imagination.horizon, "imagination.lr": cfg.imagination.lr,
+        "imagination.num_seeds": cfg.imagination.num_seeds, "imagination.epochs": cfg.imagination.epochs,
+        "imagination.num_minibatches": cfg.imagination.num_minibatches,
+        "collect.frames_per_iter": cfg.collect.frames_per_iter, "collect.buffer_capacity": cfg.collect.buffer_capacity,
+        "eval.num_envs": cfg.eval.num_envs, "eval.horizon_max": cfg.eval.horizon_max,
+        "eval.horizon_context": cfg.eval.horizon_context, "eval.mse_windows": cfg.eval.mse_windows,
+        "eval.horizon_windows": cfg.eval.horizon_windows, "run.threads": cfg.run.threads,
+    }  # fmt: skip
+    for name, value in positive.items():
+        if value <= 0:
+            raise ConfigError(f"{name}: must be positive, got {value}")
+    non_negative = {
+        "collect.iterations": cfg.collect.iterations, "collect.prefill_frames": cfg.collect.prefill_frames,
+        "world_model.train_steps": cfg.world_model.train_steps, "imagination.updates": cfg.imagination.updates,
+        "world_model.prefill_train_steps": cfg.world_model.prefill_train_steps, "eval.every": cfg.eval.every,
+    }  # fmt: skip
+    for name, value in non_negative.items():
+        if value < 0:
+            raise ConfigError(f"{name}: must be >= 0, got {value}")
+    n = cfg.env.num_envs
+    for name, frames in (("collect.frames_per_iter", cfg.collect.frames_per_iter),
+                         ("collect.prefill_frames", cfg.collect.prefill_frames)):  # fmt: skip
+        if frames % n:
+            raise ConfigError(f"{name} ({frames}) must be a multiple of env.num_envs ({n})")
+    if cfg.collect.frames_per_iter // n < cfg.world_model.seq_len:
+        raise ConfigError(
+            f"collect.frames_per_iter / env.num_envs ({cfg.collect.frames_per_iter // n} steps per env per batch) "
+            f"must be >= world_model.seq_len ({cfg.world_model.seq_len}): slices are cut inside one batch"
+        )
+    if cfg.env.episode_length < cfg.world_model.seq_len:
+        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must be >= world_model.seq_len "
+                          f"({cfg.world_model.seq_len})")  # fmt: skip
+    if cfg.eval.horizon_context + cfg.eval.horizon_max > cfg.env.episode_length:
+        raise ConfigError(
+            f"eval.horizon_context + eval.horizon_max ({cfg.eval.horizon_context + cfg.eval.horizon_max}) must be "
+            f"<= env.episode_length ({cfg.env.episode_length}): windows are cut from evaluation episodes"
+        )
+    if not 0.0 <= cfg.collect.random_action_prob <= 1.0:
+        raise ConfigError(f"collect.random_action_prob: expected a probability in [0, 1], got "
+                          f"{cfg.collect.random_action_prob}")  # fmt: skip
+    try:
+        explore_probs(cfg.collect.explore_probs, NUM_ACTIONS, "collect.explore_probs")
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
+    if cfg.collect.prefill_frames == 0 and cfg.collect.iterations == 0:
+        raise ConfigError("collect: prefill_frames and iterations are both 0 (nothing to train on)")
+
+
+def explore_probs(probs: list[float] | None, num_actions: int, name: str) -> torch.Tensor:
+    """Normalised exploration distribution ``[num_actions]`` (uniform when ``probs`` is None)."""
+    if probs is None:
+        return torch.full((num_actions,), 1.0 / num_actions)
+    p = torch.as_tensor(list(probs), dtype=torch.float32)
+    if p.shape != (num_actions,) or not bool(torch.isfinite(p).all()) or bool((p < 0).any()) or float(p.sum()) <= 0:
+        raise ValueError(f"{name}: expected {num_actions} non-negative weights with a positive sum, got {probs!r}")
+    return p / p.sum()
+
+
+VALIDATORS[HealthConfig] = validate_health_config
+
+
+def health_config_from_dict(data: dict | None) -> HealthConfig:
+    """Build and validate a :class:`HealthConfig` (the shared loader, :func:`freamer_rl.config.config_from_dict`)."""
+    return config_from_dict(data, HealthConfig)
+
+
+def load_health_config(path: str | Path | None = None, overrides: list[str] | None = None) -> HealthConfig:
+    """``load_config(path, overrides, schema=HealthConfig)``: a recipe (defaults when ``path`` is None) plus dotted
+    overrides (``["collect.iterations=5", "run.seed=1"]``)."""
+    return load_config(path, overrides, schema=HealthConfig)
+
+
+def health_config_to_dict(cfg: HealthConfig) -> dict:
+    """Plain mapping of ``cfg`` with ``trainer: health`` first (a run's ``config.yaml`` is a recipe again)."""
+    return {"trainer": "health", **dataclasses.asdict(cfg)}

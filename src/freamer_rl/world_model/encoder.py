@@ -1,0 +1,84 @@
+"""What a world-model encoder can do, as a typed ``Protocol`` (no ``hasattr`` probing in the callers).
+
+:class:`StepEncoder` is the interface every observation encoder of :class:`~freamer_rl.world_model.rssm.WorldModel`
+offers to online users -- :class:`~freamer_rl.health.agent.HealthPolicy`, the anomaly recorder and
+:class:`~freamer_rl.world_model.anomaly.KLAnomalyTransform` -- and to world-model training (auxiliary losses).
+Stateless encoders get it from :class:`StatelessStepMixin`; the health encoders implement it
+(:data:`freamer_rl.health.encoders.HealthEncoder` is this protocol), the recurrent foundation encoder with its DNC
+memory as the state.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Protocol, runtime_checkable
+
+import torch
+from tensordict.utils import NestedKey
+
+__all__ = ["StepEncoder", "StatelessStepMixin"]
+
+
+@runtime_checkable
+class StepEncoder(Protocol):
+    """Observation encoder with an online step API, auxiliary losses and gates."""
+
+    out_dim: int
+
+    @property
+    def obs_keys(self) -> tuple[NestedKey, ...]:
+        """The observation keys read."""
+        ...
+
+    @property
+    def gates(self) -> dict[str, float]:
+        """Flow-matching gates ``sigmoid(alpha_m)`` per modality (Eq. 3); ``{}`` without refiners."""
+        ...
+
+    def state_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Recurrent state entries ``{name: per-element shape}``; ``{}`` for a stateless encoder."""
+        ...
+
+    def initial_state(self, batch_shape: Sequence[int] = (), device=None) -> dict[str, torch.Tensor]:
+        """Zero state ``{name: [*batch_shape, *shape]}``."""
+        ...
+
+    def step(
+        self, obs: Mapping, state: Mapping[str, torch.Tensor] | None = None, is_first: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """One online step: ``obs {key: [*B, d]}``, ``state``, ``is_first [*B]`` -> ``(embed [*B, E], new_state)``."""
+        ...
+
+    def aux_loss(self) -> dict[str, torch.Tensor]:
+        """Auxiliary losses of the last forward pass with gradients (e.g. ``loss_fm``, ``loss_smooth``) or ``{}``."""
+        ...
+
+    def clear_cache(self) -> None:
+        """Drop whatever :meth:`aux_loss` kept from the last forward pass."""
+        ...
+
+
+class StatelessStepMixin:
+    """:class:`StepEncoder` defaults for a stateless encoder whose ``forward(obs)`` maps ``{key: [*B, d]}`` to
+    ``[*B, E]``: no state, no auxiliary losses, no gates."""
+
+    def state_shapes(self) -> dict[str, tuple[int, ...]]:
+        return {}
+
+    def initial_state(self, batch_shape: Sequence[int] = (), device=None) -> dict[str, torch.Tensor]:
+        return {n: torch.zeros(*batch_shape, *s, device=device) for n, s in self.state_shapes().items()}
+
+    def step(
+        self, obs: Mapping, state: Mapping[str, torch.Tensor] | None = None, is_first: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        return self(obs), {}
+
+    def aux_loss(self) -> dict[str, torch.Tensor]:
+        return {}
+
+    def clear_cache(self) -> None:
+        """Nothing kept."""
+
+    @property
+    def gates(self) -> dict[str, float]:
+        return {}

@@ -1,0 +1,211 @@
+"""Every config value is validated: one ConfigError line naming the dotted field, the value and the allowed range."""
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from freamer_rl.config import ConfigError, FreamerConfig, load_config
+from freamer_rl.config_checks import RANGES, config_numbers, resolve_device
+
+_RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes"
+RECIPES = sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))
+
+# (overrides, the dotted field the error must name)
+BAD = [
+    (["ppo.lr=-1"], "ppo.lr"),
+    (["ppo.lr=nan"], "ppo.lr"),
+    (["ppo.lr=.inf"], "ppo.lr"),
+    (["ppo.lr=0"], "ppo.lr"),
+    (["ppo.gamma=5"], "ppo.gamma"),
+    (["ppo.gamma=0"], "ppo.gamma"),
+    (["ppo.gae_lambda=1.5"], "ppo.gae_lambda"),
+    (["ppo.gae_lambda=-0.1"], "ppo.gae_lambda"),
+    (["ppo.clip_epsilon=0"], "ppo.clip_epsilon"),
+    (["ppo.clip_epsilon=-0.2"], "ppo.clip_epsilon"),
+    (["ppo.entropy_coeff=-0.01"], "ppo.entropy_coeff"),
+    (["ppo.entropy_coeff=.nan"], "ppo.entropy_coeff"),
+    (["ppo.critic_coeff=-1"], "ppo.critic_coeff"),
+    (["ppo.critic_coeff=.inf"], "ppo.critic_coeff"),
+    (["ppo.max_grad_norm=0"], "ppo.max_grad_norm"),
+    (["ppo.adam_eps=0"], "ppo.adam_eps"),
+    (["ppo.lambda_fm=-1"], "ppo.lambda_fm"),
+    (["ppo.lambda_smooth=.nan"], "ppo.lambda_smooth"),
+    (["ppo.epochs=0"], "ppo.epochs"),
+    (["ppo.frames_per_batch=0"], "ppo.frames_per_batch"),
+    (["logging.checkpoint_every_frames=0"], "logging.checkpoint_every_frames"),
+    (["logging.checkpoint_every_frames=-100"], "logging.checkpoint_every_frames"),
+    (["logging.log_every_batches=0"], "logging.log_every_batches"),
+    (["logging.success_window=0"], "logging.success_window"),
+    (["run.threads=0"], "run.threads"),
+    (["run.seed=-1"], "run.seed"),
+    (["run.seed=4294967296"], "run.seed"),
+    (["run.total_frames=0"], "run.total_frames"),
+    (["run.stop_at_success=2"], "run.stop_at_success"),
+    (["run.stop_at_success=0"], "run.stop_at_success"),
+    (["run.device=banana"], "run.device"),
+    (["run.device=gpu"], "run.device"),
+    (["run.device=cuda:x"], "run.device"),
+    (["model.embed_dim=33"], "model.language.heads"),
+    (["model.embed_dim=0"], "model.embed_dim"),
+    (["model.modalities=[vision, language]", "model.cross_modal_heads=5"], "model.cross_modal_heads"),
+    (["model.head_hidden=0"], "model.head_hidden"),
+    (["model.flow.steps=0"], "model.flow.steps"),
+    (["model.flow.hidden=0"], "model.flow.hidden"),
+    (["model.flow.noise_std=-1"], "model.flow.noise_std"),
+    (["model.flow.gate_init={state: .nan}"], "model.flow.gate_init.state"),
+    (["model.fno.modes=1000"], "model.fno.modes"),
+    (["model.fno.modes=0"], "model.fno.modes"),
+    (["model.fno.residual_scale=.nan"], "model.fno.residual_scale"),
+    (["model.state.modes=26"], "model.state.modes"),
+    (["model.state.channels=0"], "model.state.channels"),
+    (["model.dnc.memory_slots=0"], "model.dnc.memory_slots"),
+    (["model.dnc.memory_width=0"], "model.dnc.memory_width"),
+    (["model.language.heads=0"], "model.language.heads"),
+    (["model.language.layers=0"], "model.language.layers"),
+    (["model.language.num_slots=0"], "model.language.num_slots"),
+    (["model.language.slot_iters=0"], "model.language.slot_iters"),
+    (["model.vision.num_slots=0"], "model.vision.num_slots"),
+    (["model.vision.slot_iters=0"], "model.vision.slot_iters"),
+    (["model.reward.kernel=0"], "model.reward.kernel"),
+    (["model.reward.channels=0"], "model.reward.channels"),
+    (["model.vector.hidden=0"], "model.vector.hidden"),
+    (["env.num_envs=0"], "env.num_envs"),
+    (["env.reward_history=-1"], "env.reward_history"),
+    (["env.reward_history=0"], "env.reward_history"),  # the default modalities include reward
+    (["env.max_mission_tokens=0"], "env.max_mission_tokens"),
+    (["collector.num_collectors=0"], "collector.num_collectors"),
+]
+
+
+@pytest.mark.parametrize("overrides, field", BAD, ids=[" ".join(o) for o, _ in BAD])
+def test_bad_value_is_one_line_naming_the_field(overrides, field):
+    with pytest.raises(ConfigError) as info:
+        load_config(None, overrides)
+    msg = str(info.value)
+    assert field in msg
+    assert "\n" not in msg
+    value = overrides[-1].split("=", 1)[1]
+    if field == overrides[-1].split("=", 1)[0] and value not in ("nan", ".nan", ".inf"):
+        assert value.strip("{}").split(": ")[-1] in msg  # the value given
+
+
+@pytest.mark.parametrize(
+    "overrides",
+    [
+        ["model.cross_modal_heads=5"],  # no vision + language: no cross-modal attention
+        ["model.state.modes=25", "model.fno.modes=65"],  # the largest that fit
+        ["model.modalities=[state]", "env.reward_history=0"],
+        ["run.seed=4294967295", "run.stop_at_success=1", "ppo.gamma=1", "ppo.gae_lambda=0", "ppo.entropy_coeff=0"],
+        ["run.device=cpu"],
+        ["run.device=cuda:1"],  # CUDA visibility is checked when a run starts (a GPU config loads for evaluation)
+    ],
+)
+def test_edge_values_are_accepted(overrides):
+    load_config(None, overrides)
+
+
+def _leaf(cfg, dotted):
+    *parents, last = dotted.split(".")
+    node = cfg
+    for part in parents:
+        node = node[part] if isinstance(node, dict) else getattr(node, part)
+    return node, last
+
+
+def _fields_to_try():
+    out = []
+    for name, value in config_numbers(FreamerConfig()):
+        out.append((name, float("nan") if isinstance(value, float) else -1))
+    return out
+
+
+@pytest.mark.parametrize("name, bad", _fields_to_try(), ids=[n for n, _ in _fields_to_try()])
+def test_every_number_field_is_checked(name, bad):
+    """Generic: every int field refuses -1 and every float field refuses NaN, naming the field."""
+    from freamer_rl.config import validate
+
+    cfg = FreamerConfig()
+    node, last = _leaf(cfg, name)
+    if isinstance(node, dict):
+        node[last] = bad
+    else:
+        setattr(node, last, bad)
+    with pytest.raises(ConfigError, match=name.replace(".", r"\.")):
+        validate(cfg)
+
+
+def test_range_table_names_real_fields():
+    names = {n for n, _ in config_numbers(FreamerConfig())} | {"run.stop_at_success"}  # None by default
+    assert set(RANGES) <= names
+
+
+@pytest.mark.parametrize("recipe", RECIPES, ids=[r.name for r in RECIPES])
+def test_every_recipe_still_validates(recipe):
+    assert load_config(recipe).model.modalities
+
+
+def test_duplicate_yaml_key_names_file_line_and_key(tmp_path):
+    dup = tmp_path / "dup.yaml"
+    dup.write_text("ppo:\n  lr: 1.0e-4\n  gamma: 0.9\n  lr: 3.0e-4\n")
+    with pytest.raises(ConfigError) as info:
+        load_config(dup)
+    msg = str(info.value)
+    assert "dup.yaml:4" in msg and "duplicate key 'lr'" in msg and "line 2" in msg and "\n" not in msg
+    top = tmp_path / "top.yaml"
+    top.write_text("run:\n  seed: 1\nppo:\n  lr: 1.0e-4\nrun:\n  seed: 2\n")
+    with pytest.raises(ConfigError, match=r"top\.yaml:5: duplicate key 'run'"):
+        load_config(top)
+
+
+def test_yaml_merge_keys_are_not_duplicates(tmp_path):
+    from freamer_rl.config_checks import check_recipe_file
+
+    merged = tmp_path / "merged.yaml"
+    merged.write_text("model:\n  language:\n    <<: {heads: 2, layers: 1}\n    heads: 4\n")
+    check_recipe_file(merged)
+    assert load_config(merged).model.language.heads == 4
+
+
+@pytest.mark.parametrize("text", ["", "\n", "# only a comment\n"])
+def test_empty_recipe_is_one_line(tmp_path, text):
+    empty = tmp_path / "empty.yaml"
+    empty.write_text(text)
+    with pytest.raises(ConfigError, match=r"empty\.yaml: the recipe file is empty"):
+        load_config(empty)
+
+
+def test_invalid_yaml_still_reports_its_line(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("ppo:\n  lr: [1, 2\n")
+    with pytest.raises(ConfigError, match="bad.yaml:"):
+        load_config(bad)
+
+
+def test_cuda_without_a_visible_gpu_is_one_line(monkeypatch):
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(ConfigError) as info:
+        resolve_device("cuda")
+    assert "run.device" in str(info.value) and "no CUDA device is visible" in str(info.value)
+    assert resolve_device("cpu") == torch.device("cpu")
+
+
+def test_trainer_refuses_cuda_before_touching_the_run_dir(tmp_path, monkeypatch):
+    from freamer_rl.train import Trainer
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    cfg = load_config(_RECIPE_DIR / "tiny.yaml", ["run.device=cuda"])
+    with pytest.raises(ConfigError, match="no CUDA device is visible"):
+        Trainer(cfg, tmp_path / "run")
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("device, fragment", [("banana", "expected cpu, cuda or cuda:N"), ("cuda", "run.device")])
+def test_cli_bad_device_is_one_error_line(tmp_path, capsys, monkeypatch, device, fragment):
+    from freamer_rl.cli import main
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    code = main(["train", str(_RECIPE_DIR / "tiny.yaml"), f"run.device={device}", "--run-dir", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith("error: run.device") and fragment in err[0]

@@ -1,0 +1,49 @@
+"""The one optimiser step: a non-finite gradient is skipped (weights and Adam state unchanged), counted and logged."""
+
+import logging
+
+import torch
+
+from freamer_rl.optim import StepStats, optimizer_step
+
+
+def _setup():
+    torch.manual_seed(0)
+    lin = torch.nn.Linear(3, 1)
+    opt = torch.optim.Adam(lin.parameters(), lr=0.1)
+    return lin, opt
+
+
+def test_finite_gradient_steps_and_clips():
+    lin, opt = _setup()
+    before = [p.detach().clone() for p in lin.parameters()]
+    stats = StepStats("test")
+    loss = (lin(torch.ones(4, 3)) * 100.0).sum()
+    gn = optimizer_step(loss, opt, lin.parameters(), max_grad_norm=1.0, stats=stats)
+    assert torch.isfinite(gn) and float(gn) > 1.0  # the norm before clipping is returned
+    assert stats.steps == 1 and stats.skipped == 0
+    assert any(not torch.equal(b, p) for b, p in zip(before, lin.parameters()))
+    assert all(p.grad is None for p in lin.parameters())
+
+
+def test_nan_gradient_is_skipped_counted_and_logged(caplog):
+    lin, opt = _setup()
+    stats = StepStats("test")
+    optimizer_step(lin(torch.ones(2, 3)).sum(), opt, lin.parameters(), 1.0, stats)  # one good step: Adam has state
+    weights = [p.detach().clone() for p in lin.parameters()]
+    adam = {k: v.clone() for k, v in opt.state[lin.weight].items()}
+    with caplog.at_level(logging.WARNING, logger="freamer_rl.optim"):
+        gn = optimizer_step(lin(torch.ones(2, 3)).sum() * float("nan"), opt, lin.parameters(), 1.0, stats)
+        gn2 = optimizer_step(lin(torch.ones(2, 3)).sum() * float("inf"), opt, lin.parameters(), None, stats)
+    assert not torch.isfinite(gn) and not torch.isfinite(gn2)
+    assert stats.steps == 3 and stats.skipped == 2
+    assert all(torch.equal(w, p) for w, p in zip(weights, lin.parameters()))
+    assert all(torch.equal(adam[k], v) for k, v in opt.state[lin.weight].items())
+    assert all(p.grad is None for p in lin.parameters())
+    warnings = [r for r in caplog.records if "update skipped" in r.getMessage()]
+    assert len(warnings) == 1  # rate-limited: the second skip within the window is counted, not logged again
+    assert "test" in warnings[0].getMessage()
+    # a finite step afterwards trains again
+    optimizer_step(lin(torch.ones(2, 3)).sum(), opt, lin.parameters(), 1.0, stats)
+    assert any(not torch.equal(w, p) for w, p in zip(weights, lin.parameters()))
+    assert stats.state_dict() == {"steps": 4, "skipped": 2}
