@@ -47,3 +47,30 @@ def test_nan_gradient_is_skipped_counted_and_logged(caplog):
     optimizer_step(lin(torch.ones(2, 3)).sum(), opt, lin.parameters(), 1.0, stats)
     assert any(not torch.equal(w, p) for w, p in zip(weights, lin.parameters()))
     assert stats.state_dict() == {"steps": 4, "skipped": 2}
+
+
+def test_minigrid_trainer_counts_skipped_steps(tmp_path, monkeypatch):
+    """The trainer's optimiser step goes through optimizer_step: a NaN loss is skipped, counted in progress.csv and
+    kept in the checkpoint."""
+    import csv
+    from pathlib import Path
+
+    from freamer_rl.config import load_config
+    from freamer_rl.train import Trainer
+
+    tiny = Path(__file__).resolve().parents[1] / "recipes" / "tiny.yaml"
+    trainer = Trainer(load_config(tiny, ["logging.progress_bar=false"]), tmp_path / "run")
+    real = trainer.aux_loss.forward
+
+    def nan_fm(td):
+        out = real(td)
+        out["loss_fm"] = out["loss_fm"] * float("nan")
+        return out
+
+    monkeypatch.setattr(trainer.aux_loss, "forward", nan_fm)
+    before = [p.detach().clone() for p in trainer.params]
+    summary = trainer.train()
+    assert summary["skipped_steps"] == trainer.step_stats.steps > 0
+    assert all(torch.equal(a, b.detach()) for a, b in zip(before, trainer.params))  # no step was taken
+    rows = list(csv.DictReader((tmp_path / "run" / "progress.csv").open()))
+    assert int(rows[-1]["skipped_steps"]) == summary["skipped_steps"]

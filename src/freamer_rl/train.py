@@ -265,6 +265,8 @@ class Trainer:
             self.rows = [dict(r) for r in ckpt["rows"]]
             self.wall_time = float(ckpt.get("wall_time", 0.0))
             torch.set_rng_state(ckpt["torch_rng"])
+            if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
+                self.step_stats.load_state_dict(ckpt["ppo_steps"])
         except CheckpointError:
             raise
         except (KeyError, TypeError, ValueError, RuntimeError) as err:  # a hand-edited or foreign payload
@@ -284,6 +286,7 @@ class Trainer:
             "wall_time": self.wall_time,
             "config": config_to_dict(self.cfg),
             "torch_rng": torch.get_rng_state(),
+            "ppo_steps": self.step_stats.state_dict(),
             "format": CHECKPOINT_FORMAT,
             "trainer": "minigrid_ppo",  # freamer-rl eval dispatches on it (freamer_rl.trainers.TRAINERS)
         }
@@ -385,11 +388,13 @@ class Trainer:
         return {k: v / count for k, v in sums.items()}
 
     def _fallback_counts(self) -> dict[str, int]:
-        """Numerical fallbacks counted by the layers: slot-attention NaN guards and DNC memory clamps."""
+        """Numerical fallbacks: slot-attention NaN guards and DNC memory clamps counted by the layers, and optimiser
+        steps skipped for a non-finite gradient (this run's count, kept across resumes)."""
         mods = list(self.modules.trunk.modules())
         return {
             "nan_fallbacks": int(sum(int(getattr(m, "nan_fallbacks", 0)) for m in mods)),
             "dnc_clip_events": int(sum(int(getattr(m, "clip_events", 0)) for m in mods)),
+            "skipped_steps": self.step_stats.skipped,
         }
 
     # -- main -----------------------------------------------------------------------------------------------
