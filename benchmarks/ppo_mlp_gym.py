@@ -75,7 +75,8 @@ def train_ppo_mlp_gym(recipe: str, seed: int, total_frames: int, *, overrides: l
                        critic_coeff=p.critic_coeff, loss_critic_type="l2", normalize_advantage=p.normalize_advantage)
     gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=critic, average_gae=False)
     opt = torch.optim.Adam(loss.parameters(), lr=p.lr, eps=p.adam_eps)
-    collector = Collector(env_fn, actor, frames_per_batch=p.frames_per_batch, total_frames=total_frames)
+    collector = Collector(env_fn, actor, frames_per_batch=p.frames_per_batch, total_frames=total_frames,
+                          auto_register_policy_transforms=False)
     rb = ReplayBuffer(storage=LazyTensorStorage(p.frames_per_batch), sampler=SamplerWithoutReplacement(),
                       batch_size=p.minibatch_size)
     rets: deque = deque(maxlen=window)

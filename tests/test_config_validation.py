@@ -33,6 +33,8 @@ BAD = [
     (["ppo.lambda_smooth=.nan"], "ppo.lambda_smooth"),
     (["ppo.epochs=0"], "ppo.epochs"),
     (["ppo.frames_per_batch=0"], "ppo.frames_per_batch"),
+    (["ppo.frames_per_batch=2048", "ppo.minibatch_size=768"], "ppo.minibatch_size"),
+    (["ppo.lr_schedule=cosine"], "ppo.lr_schedule"),
     (["logging.checkpoint_every_frames=0"], "logging.checkpoint_every_frames"),
     (["logging.checkpoint_every_frames=-100"], "logging.checkpoint_every_frames"),
     (["logging.log_every_batches=0"], "logging.log_every_batches"),

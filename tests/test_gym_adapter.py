@@ -74,3 +74,22 @@ def test_every_adapter_declares_options_and_builds(name):
     env = env_registry.make_env(name, ids[name], seed=0, **options)
     check_env_specs(env)
     env.close()
+
+
+def test_eval_of_a_gym_run_reports_no_success_rate(tmp_path, capsys):
+    """CartPole has no notion of success: eval reports NaN, not MiniGrid's 'terminated with reward > 0' rule."""
+    import json
+    import math
+    from pathlib import Path
+
+    from freamer_rl import cli
+
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "gym" / "cartpole.yaml"
+    run = tmp_path / "run"
+    overrides = ["env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32", "ppo.epochs=1",
+                 "run.total_frames=64", "logging.progress_bar=false"]
+    assert cli.main(["train", str(recipe), *overrides, "--run-dir", str(run)]) == 0
+    capsys.readouterr()
+    assert cli.main(["eval", str(run), "--episodes", "4", "--num-envs", "2"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["episodes"] == 4 and math.isnan(result["success_rate"]) and result["return_mean"] > 0

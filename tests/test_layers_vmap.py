@@ -204,3 +204,18 @@ def test_full_policy_through_torchrl_gae_with_default_vmap():
     with torch.no_grad():
         plain = modules.value(data.select(*modules.value.in_keys).clone())["state_value"]
     torch.testing.assert_close(out["state_value"], plain, atol=1e-5, rtol=1e-5)
+
+
+def test_value_checks_can_be_switched_off():
+    from freamer_rl.layers.checks import set_value_checks
+    from freamer_rl.layers.encoders import RewardEncoder
+
+    enc = RewardEncoder(history=3, out_dim=4)
+    x = torch.tensor([[0.0, float("nan"), 1.0]])
+    with pytest.raises(ValueError, match="non-finite"):
+        enc(x)
+    old = set_value_checks(False)
+    try:
+        assert torch.isnan(enc(x)).any()  # same maths, nothing checked
+    finally:
+        set_value_checks(old)

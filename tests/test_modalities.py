@@ -114,8 +114,10 @@ def test_bad_observation_specs_are_one_line(spec, keys, fragment):
         Categorical(3, shape=(2,), dtype=torch.int64),
         Composite(a=Categorical(2, shape=())),
         Bounded(low=0, high=3, shape=(2,), dtype=torch.int64),
+        Categorical(3, shape=(1,), dtype=torch.int64),
+        Bounded(low=-1.0, high=1.0, shape=()),
     ],
-    ids=["multi-discrete", "composite", "integer-box"],
+    ids=["multi-discrete", "composite", "integer-box", "categorical-[1]", "scalar-box"],
 )
 def test_action_spec_without_a_head_is_one_line(action_spec):
     obs_spec = Composite(observation=Unbounded(shape=(3,)), shape=())
@@ -131,6 +133,7 @@ def test_action_spec_without_a_head_is_one_line(action_spec):
         (OneHot(3), "OneHotCategorical"),
         (Bounded(low=-2.0, high=2.0, shape=(2,)), "TanhNormal"),
         (Unbounded(shape=(2,)), "IndependentNormal"),
+        (Bounded(low=-1.0, high=1.0, shape=(2, 3)), "TanhNormal"),
     ],
 )
 @pytest.mark.parametrize("batch", [(), (4,)])
@@ -148,6 +151,7 @@ def test_heads_follow_the_action_spec(action_spec, dist, batch):
     assert out["action"].shape == (*batch, *action_spec.shape)
     assert action_spec.is_in(out["action"].to(action_spec.dtype))
     assert torch.isfinite(out["action_log_prob"]).all()
+    assert out["action_log_prob"].shape == batch  # one log-prob per action, summed over its dims
     assert m.value(td)["state_value"].shape == (*batch, 1)
 
 

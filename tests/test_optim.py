@@ -2,6 +2,7 @@
 
 import logging
 
+import pytest
 import torch
 
 from freamer_rl.optim import StepStats, optimizer_step
@@ -74,3 +75,30 @@ def test_minigrid_trainer_counts_skipped_steps(tmp_path, monkeypatch):
     assert all(torch.equal(a, b.detach()) for a, b in zip(before, trainer.params))  # no step was taken
     rows = list(csv.DictReader((tmp_path / "run" / "progress.csv").open()))
     assert int(rows[-1]["skipped_steps"]) == summary["skipped_steps"]
+
+
+def test_resume_takes_lr_and_eps_from_the_config(tmp_path):
+    from pathlib import Path
+
+    from freamer_rl.config import load_config
+    from freamer_rl.train import Trainer
+
+    tiny = Path(__file__).resolve().parents[1] / "recipes" / "tiny.yaml"
+    Trainer(load_config(tiny, ["logging.progress_bar=false", "ppo.lr=1e-3"]), tmp_path / "run").train()
+    resumed = Trainer(load_config(tiny, ["logging.progress_bar=false", "ppo.lr=2e-4", "ppo.adam_eps=1e-6",
+                                         "run.total_frames=512"]), tmp_path / "run")
+    assert resumed.frames > 0
+    assert all(g["lr"] == 2e-4 and g["eps"] == 1e-6 for g in resumed.optimizer.param_groups)
+
+
+def test_linear_lr_schedule_follows_the_frames(tmp_path):
+    from pathlib import Path
+
+    from freamer_rl.config import load_config
+    from freamer_rl.train import Trainer
+
+    tiny = Path(__file__).resolve().parents[1] / "recipes" / "tiny.yaml"
+    cfg = load_config(tiny, ["logging.progress_bar=false", "ppo.lr=1e-3", "ppo.lr_schedule=linear"])
+    trainer = Trainer(cfg, tmp_path / "run")
+    trainer.train()  # 2 batches of 128 frames out of 256: the second trains at lr * (1 - 128 / 256)
+    assert trainer.optimizer.param_groups[0]["lr"] == pytest.approx(5e-4)

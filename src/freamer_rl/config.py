@@ -130,7 +130,8 @@ class PPOConfig:
     """PPO and auxiliary-loss settings (paper Table A20 defaults, tuned where the benchmark showed better)."""
 
     lr: float = 1e-4
-    # "constant", or "linear": decays to 0 at run.total_frames (as in SB3/RL-Zoo's PPO recipes)
+    # "constant", or "linear": decays to 0 at run.total_frames (as in SB3/RL-Zoo's PPO recipes); the rate follows the
+    # frames done, so a resume continues the decay, and raising run.total_frames on resume stretches it
     lr_schedule: str = "constant"
     adam_eps: float = 1e-5
     max_grad_norm: float = 1.0
@@ -423,6 +424,10 @@ def validate(cfg: FreamerConfig) -> None:
         raise ConfigError(
             f"ppo.sequence_length ({p.sequence_length}) must divide the steps per env per batch ({steps} = "
             f"ppo.frames_per_batch / (env.num_envs * collector.num_collectors))"
+        )
+    if p.frames_per_batch % p.minibatch_size:  # else an epoch draws short minibatches and repeats sequences
+        raise ConfigError(
+            f"ppo.minibatch_size ({p.minibatch_size}) must divide ppo.frames_per_batch ({p.frames_per_batch})"
         )
     if p.minibatch_size % p.sequence_length or p.minibatch_size > p.frames_per_batch:
         raise ConfigError(

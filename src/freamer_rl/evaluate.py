@@ -13,6 +13,7 @@ from typing import Any
 import torch
 from torchrl.envs.utils import ExplorationType, set_exploration_type
 
+from freamer_rl import env_registry
 from freamer_rl.config import ConfigError, config_from_dict
 from freamer_rl.errors import CheckpointError
 from freamer_rl.checkpoint import load_checkpoint, load_model_state
@@ -42,43 +43,54 @@ def evaluate(
     modules = build_modules(cfg)
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()
-    policy = modules.policy
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
     env = make_batched_env(cfg, modules.primers(), seed, num_envs=n_envs)
-    returns: list[float] = []
-    lengths: list[int] = []
-    successes: list[bool] = []
+    success_fn = env_registry.get_adapter(cfg.env.adapter).success
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     try:
-        td = env.reset()
         with set_exploration_type(mode):
-            for _ in range(max_steps):
-                td = policy(td)
-                td, td_next = env.step_and_maybe_reset(td)
-                nxt = td["next"]
-                done = nxt["done"].reshape(-1)
-                for i in done.nonzero().flatten().tolist():
-                    returns.append(float(nxt["episode_reward"].reshape(n_envs, -1)[i, 0]))
-                    lengths.append(int(nxt["step_count"].reshape(n_envs, -1)[i, 0]))
-                    successes.append(bool(nxt["terminated"].reshape(-1)[i]) and float(nxt["reward"].reshape(-1)[i]) > 0)
-                td = td_next
-                if len(returns) >= episodes:
-                    break
+            per_env = _episodes_per_env(env, modules.policy, n_envs, -(-episodes // n_envs), success_fn, max_steps)
     finally:
         env.close()
-    returns, lengths, successes = returns[:episodes], lengths[:episodes], successes[:episodes]
-    if not returns:
+    # episode k of every env before episode k + 1 of any: choosing by finishing order would favour short episodes
+    chosen = [eps[k] for k in range(max(map(len, per_env))) for eps in per_env if k < len(eps)][:episodes]
+    if not chosen:
         raise CheckpointError(f"no episode finished within {max_steps} steps")
+    succ = [e["success"] for e in chosen if e["success"] is not None]
     return {
         "checkpoint": str(path),
         "env": cfg.env.id,
-        "episodes": len(returns),
-        "success_rate": sum(successes) / len(successes),
-        "return_mean": sum(returns) / len(returns),
-        "length_mean": sum(lengths) / len(lengths),
+        "episodes": len(chosen),
+        # NaN when the env has no notion of success (e.g. CartPole): see EnvAdapter.success
+        "success_rate": sum(succ) / len(succ) if succ else float("nan"),
+        "return_mean": sum(e["return"] for e in chosen) / len(chosen),
+        "length_mean": sum(e["length"] for e in chosen) / len(chosen),
         "deterministic": deterministic,
         "frames_trained": ckpt.get("frames"),
     }
+
+
+def _episodes_per_env(env, policy, n_envs: int, quota: int, success_fn, max_steps: int) -> list[list[dict]]:
+    """The first ``quota`` episodes of each of the ``n_envs`` envs: ``{"return", "length", "success"}`` each
+    (``success`` None without a success rule)."""
+    per_env: list[list[dict]] = [[] for _ in range(n_envs)]
+    td = env.reset()
+    for _ in range(max_steps):
+        td = policy(td)
+        td, td_next = env.step_and_maybe_reset(td)
+        nxt = td["next"].reshape(n_envs)
+        done = nxt["done"].reshape(n_envs)
+        if done.any():
+            ended = done.nonzero().flatten().tolist()
+            succ = success_fn(nxt[done]).reshape(-1).tolist() if success_fn is not None else [None] * len(ended)
+            for j, i in enumerate(ended):
+                if len(per_env[i]) < quota:
+                    per_env[i].append({"return": float(nxt["episode_reward"][i].reshape(-1)[0]),
+                                       "length": int(nxt["step_count"][i].reshape(-1)[0]), "success": succ[j]})
+        td = td_next
+        if all(len(e) >= quota for e in per_env):
+            break
+    return per_env
 
 
 def evaluate_any(checkpoint_or_run: str | Path, **options: Any) -> dict[str, Any]:

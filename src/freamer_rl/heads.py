@@ -38,18 +38,18 @@ def mlp_head(in_dim: int, hidden: int, out_dim: int, out_gain: float) -> nn.Sequ
 
 def action_kind(action_spec) -> str:
     """``"categorical"``, ``"one_hot"``, ``"bounded"`` or ``"unbounded"``; :class:`EnvSetupError` otherwise."""
-    if isinstance(action_spec, Categorical) and action_spec.shape.numel() <= 1:
+    shape = tuple(action_spec.shape)
+    if isinstance(action_spec, Categorical) and shape == ():
         return "categorical"
     if isinstance(action_spec, OneHot) and action_spec.ndim == 1:
         return "one_hot"
-    if action_spec.dtype.is_floating_point and isinstance(action_spec, Bounded):
-        return "bounded"
-    if action_spec.dtype.is_floating_point and isinstance(action_spec, Unbounded):
-        return "unbounded"
+    if action_spec.dtype.is_floating_point and isinstance(action_spec, (Bounded, Unbounded)) and len(shape) >= 1:
+        return "bounded" if isinstance(action_spec, Bounded) else "unbounded"
     raise EnvSetupError(
-        f"action spec {type(action_spec).__name__}(shape={tuple(action_spec.shape)}, dtype={action_spec.dtype}) has "
-        "no head: expected Categorical(n) with shape [] or [1], OneHot(n) with shape [n], or a float Bounded / "
-        "Unbounded box (multi-discrete and composite actions are not supported)"
+        f"action spec {type(action_spec).__name__}(shape={shape}, dtype={action_spec.dtype}) has no head: expected "
+        "Categorical(n) with shape [] (e.g. GymEnv(..., categorical_action_encoding=True)), OneHot(n) with shape "
+        "[n], or a float Bounded / Unbounded box with at least one dim (multi-discrete, composite and scalar-shaped "
+        "box actions are not supported)"
     )
 
 
@@ -67,12 +67,13 @@ def build_actor(action_spec, in_dim: int, hidden: int, in_key="hidden") -> Proba
     shape = tuple(action_spec.shape)
     n = int(torch.Size(shape).numel())
     net = nn.Sequential(mlp_head(in_dim, hidden, 2 * n, out_gain=0.01), _Unflatten(shape), NormalParamExtractor())
-    kwargs: dict = {}
+    # every action dim is one event: the log-prob sums over the whole action, whatever its shape
     if kind == "bounded":
         dist = TanhNormal
-        kwargs = {"low": action_spec.space.low, "high": action_spec.space.high}
+        kwargs = {"low": action_spec.space.low, "high": action_spec.space.high, "event_dims": len(shape)}
     else:
         dist = IndependentNormal
+        kwargs = {"event_dim": len(shape)}
     return ProbabilisticActor(
         TensorDictModule(net, in_keys=[in_key], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"], out_keys=["action"], spec=action_spec, distribution_class=dist,

@@ -49,6 +49,7 @@ from torchrl.objectives.value import GAE
 from freamer_rl import env_registry
 from freamer_rl.config import FreamerConfig, config_to_dict
 from freamer_rl.config_checks import resolve_device
+from freamer_rl.layers.checks import set_value_checks
 from freamer_rl.errors import CheckpointError, FreamerError
 from freamer_rl.factory import FreamerModules, build_freamer
 from freamer_rl.losses import FreamerAuxLoss
@@ -164,6 +165,9 @@ class Trainer:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.device = resolve_device(cfg.run.device)  # before any work: 'cuda' without a visible GPU is one line
+        if self.device.type != "cpu":  # their host syncs would stall the accelerator once per layer call
+            set_value_checks(False)
+            logger.info("run.device=%s: the layers' eager value checks (NaN inputs, index ranges) are off", self.device)
         torch.set_num_threads(cfg.run.threads)
         torch.manual_seed(cfg.run.seed)
         self.modules = build_modules(cfg)
@@ -259,6 +263,8 @@ class Trainer:
         load_model_state(self.modules, ckpt["model"], path)
         try:
             self.optimizer.load_state_dict(ckpt["optimizer"])
+            for group in self.optimizer.param_groups:  # the optimiser state keeps its moments; the config sets lr/eps
+                group["lr"], group["eps"] = self.cfg.ppo.lr, self.cfg.ppo.adam_eps
             self.frames = int(ckpt["frames"])
             self.batches = int(ckpt["batches"])
             self.stats.load_state_dict(ckpt["stats"])

@@ -10,13 +10,26 @@ guards in two:
 - value checks (index ranges, non-finite inputs), fallback/clamp counting, and data-dependent shortcuts (row
   deduplication, inference caches) run only when :func:`value_checks_active` is True. The maths is identical
   either way: under a transform invalid values are simply not detected and counters are not updated.
+
+In plain eager mode these value checks do read values on the host (a few small syncs per forward: cheap on a CPU,
+a pipeline stall per layer on a GPU). :func:`set_value_checks` switches them off globally; the trainer does so when
+``run.device`` is not the CPU.
 """
 
 from __future__ import annotations
 
 import torch
 
-__all__ = ["check_finite", "is_transformed", "value_checks_active"]
+__all__ = ["check_finite", "is_transformed", "set_value_checks", "value_checks_active"]
+
+_enabled = True
+
+
+def set_value_checks(enabled: bool) -> bool:
+    """Switch the eager-mode value checks, counters and caches on or off for every layer; returns the old setting."""
+    global _enabled
+    old, _enabled = _enabled, bool(enabled)
+    return old
 
 
 def is_transformed(*tensors: torch.Tensor) -> bool:
@@ -29,8 +42,9 @@ def is_transformed(*tensors: torch.Tensor) -> bool:
 
 
 def value_checks_active(*tensors: torch.Tensor) -> bool:
-    """True when value checks, counting and caching may read ``tensors`` on the host (plain eager execution)."""
-    return not is_transformed(*tensors)
+    """True when value checks, counting and caching may read ``tensors`` on the host (plain eager execution, and
+    not switched off by :func:`set_value_checks`)."""
+    return _enabled and not is_transformed(*tensors)
 
 
 def check_finite(x: torch.Tensor, label: str) -> None:
