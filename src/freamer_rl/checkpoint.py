@@ -32,7 +32,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
-from freamer_rl.errors import CheckpointError
+from freamer_rl.errors import CheckpointError, FreamerError
 
 if TYPE_CHECKING:  # only for annotations: the factory imports heavy layers
     from freamer_rl.factory import FreamerModules
@@ -50,6 +50,7 @@ __all__ = [
     "load_model_state",
     "read_checkpoint",
     "remove_stale_temps",
+    "resume_checkpoint",
     "save_checkpoint",
     "to_plain",
 ]
@@ -263,6 +264,23 @@ def latest_checkpoint(run_dir: str | Path) -> Path | None:
     if newer:  # killed after the checkpoint rename, before the marker's: the newer file is complete
         logger.warning("%s is newer than the 'latest' marker (%s): using it", newer[-1].name, name)
         return newer[-1]
+    return path
+
+
+def resume_checkpoint(run_dir: str | Path, resume: bool, refusal_hint: str) -> Path | None:
+    """Clean a run dir up and pick the checkpoint a run resumes from (None: start fresh); call holding its lock.
+
+    Deletes the temporary files of killed writes in ``run_dir`` and its checkpoint folder, then returns
+    :func:`latest_checkpoint`. With ``resume`` False a run dir that holds any checkpoint raises :class:`FreamerError`
+    ending in ``refusal_hint`` (starting over would rotate the old checkpoints away; nothing is ever deleted here).
+    """
+    run_dir = Path(run_dir)
+    ckpt_dir = run_dir / CHECKPOINT_DIR
+    for folder in (run_dir, ckpt_dir):  # temporary files of killed writes (we hold the lock: no writer)
+        remove_stale_temps(folder)
+    path = latest_checkpoint(run_dir)
+    if not resume and (path is not None or list_checkpoints(ckpt_dir)):
+        raise FreamerError(f"run dir {run_dir} already holds checkpoints; use another run.name or {refusal_hint}")
     return path
 
 

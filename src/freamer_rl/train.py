@@ -145,7 +145,7 @@ def default_run_name(cfg: FreamerConfig) -> str:
 from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT  # noqa: E402
 from freamer_rl.checkpoint import (  # noqa: E402, F401
     atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
-    load_model_state, remove_stale_temps, save_checkpoint,
+    load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint,
 )
 from freamer_rl.config import ConfigError  # noqa: E402
 from freamer_rl.rundir import (  # noqa: E402
@@ -225,16 +225,7 @@ class Trainer:
     # -- bookkeeping ----------------------------------------------------------------------------------------
     def _open_run_dir(self, resume: bool) -> None:
         """Resume from the latest checkpoint (or refuse to overwrite one), then make the files match the state."""
-        ckpt_dir = self.run_dir / "checkpoints"
-        for folder in (self.run_dir, ckpt_dir):  # temporary files of killed writes (we hold the lock: no writer)
-            remove_stale_temps(folder)
-        ckpt_path = latest_checkpoint(self.run_dir)
-        if not resume and (ckpt_path is not None or list_checkpoints(ckpt_dir)):
-            # starting over would rotate the old checkpoints away: refuse, and never delete anything ourselves
-            raise FreamerError(
-                f"run dir {self.run_dir} already holds checkpoints; use another run.name or delete it "
-                f"(--no-resume never deletes a run)"
-            )
+        ckpt_path = resume_checkpoint(self.run_dir, resume, "delete it (--no-resume never deletes a run)")
         if ckpt_path is not None:
             self._resume(ckpt_path)
         # progress.csv = the checkpoint's rows: rows written after it (a kill -9) go, a fresh start truncates

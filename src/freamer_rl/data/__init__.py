@@ -1,49 +1,6 @@
 """Datasets used by the FreamerV1 domains (PAMAP2 wearable sensors for the health application, paper Section 5)."""
 
-from freamer_rl.data.pamap2 import (
-    ACTIVITY_GROUP_NAMES,
-    ACTIVITY_GROUP_OF,
-    ACTIVITY_MET,
-    ACTIVITY_NAMES,
-    HR_FEATURE_NAMES,
-    IMU_CHANNELS,
-    IMU_FEATURE_NAMES,
-    IMU_SITES,
-    N_COLUMNS,
-    PROTOCOL_SUBJECTS,
-    HRFeatureParams,
-    Pamap2Features,
-    Pamap2FormatError,
-    Pamap2Recording,
-    hr_feature_sequence,
-    hr_zone,
-    load_pamap2_protocol,
-    load_pamap2_subject,
-    pamap2_features,
-    synthetic_recording,
-    write_synthetic_pamap2,
-)
+from freamer_rl.data import pamap2
+from freamer_rl.data.pamap2 import *  # noqa: F403  (the public names of pamap2, listed once in its __all__)
 
-__all__ = [
-    "ACTIVITY_GROUP_NAMES",
-    "ACTIVITY_GROUP_OF",
-    "ACTIVITY_MET",
-    "ACTIVITY_NAMES",
-    "HR_FEATURE_NAMES",
-    "IMU_CHANNELS",
-    "IMU_FEATURE_NAMES",
-    "IMU_SITES",
-    "N_COLUMNS",
-    "PROTOCOL_SUBJECTS",
-    "HRFeatureParams",
-    "Pamap2Features",
-    "Pamap2FormatError",
-    "Pamap2Recording",
-    "hr_feature_sequence",
-    "hr_zone",
-    "load_pamap2_protocol",
-    "load_pamap2_subject",
-    "pamap2_features",
-    "synthetic_recording",
-    "write_synthetic_pamap2",
-]
+__all__ = list(pamap2.__all__)

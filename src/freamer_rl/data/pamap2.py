@@ -48,39 +48,11 @@ Heart-rate features (16), see :data:`HR_FEATURE_NAMES` and :func:`pamap2_feature
 
 from __future__ import annotations
 
-# the private names are re-exported too: code written against the single-file module may still use them
+# every public name of the format module (its __all__), and the private ones too: code written against the
+# single-file module may still use them
+from freamer_rl.data.pamap2_format import *  # noqa: F403
 from freamer_rl.data.pamap2_format import (  # noqa: F401
-    _GROUP_TABLE,
-    _IMU_FEATURE_CHANNELS,
-    _IMU_SCALE,
-    _MAG_UNIT,
-    _MET_TABLE,
-    _SITE_FIRST_COLUMN,
-    _VALID_ID,
-    ACTIVITY_GROUP_NAMES,
-    ACTIVITY_GROUP_OF,
-    ACTIVITY_MET,
-    ACTIVITY_NAMES,
-    COLUMN_NAMES,
-    HR_FEATURE_NAMES,
-    HR_ZONE_NAMES,
-    IMU_CHANNELS,
-    IMU_FEATURE_NAMES,
-    IMU_SITES,
-    MAX_ACTIVITY_ID,
-    N_COLUMNS,
-    PROTOCOL_SUBJECTS,
-    SAMPLE_RATE_HZ,
-    G,
-    HRFeatureParams,
-    Pamap2Features,
-    Pamap2FormatError,
-    Pamap2Recording,
-    activity_name,
-    group_table,
-    hr_zone,
-    met_table,
-    valid_activity_ids,
+    _GROUP_TABLE, _IMU_FEATURE_CHANNELS, _IMU_SCALE, _MAG_UNIT, _MET_TABLE, _SITE_FIRST_COLUMN, _VALID_ID,
 )
 from freamer_rl.data.pamap2_observation import _estimate_hr_rest, _ffill_rows, hr_feature_sequence, pamap2_features
 from freamer_rl.data.pamap2_parse import _parse_dat, _recording_from_array, load_pamap2_protocol, load_pamap2_subject

@@ -16,6 +16,14 @@ import numpy as np
 
 from freamer_rl.errors import FreamerError
 
+#: every public name of the module (re-exported as a whole by :mod:`freamer_rl.data.pamap2`)
+__all__ = [
+    "N_COLUMNS", "SAMPLE_RATE_HZ", "PROTOCOL_SUBJECTS", "IMU_SITES", "IMU_CHANNELS", "COLUMN_NAMES", "G",
+    "IMU_FEATURE_NAMES", "ACTIVITY_NAMES", "MAX_ACTIVITY_ID", "ACTIVITY_GROUP_NAMES", "ACTIVITY_GROUP_OF",
+    "ACTIVITY_MET", "HR_FEATURE_NAMES", "HR_ZONE_NAMES", "Pamap2FormatError", "Pamap2Recording", "HRFeatureParams",
+    "Pamap2Features", "hr_zone", "activity_name", "group_table", "met_table", "valid_activity_ids",
+]  # fmt: skip
+
 # ----------------------------------------------------------------------------------------------------------------------
 # format constants
 # ----------------------------------------------------------------------------------------------------------------------

@@ -14,16 +14,8 @@
 The real env is built through the ``freamer_rl.envs`` entry point ``health`` (the library never imports ``envs``).
 """
 
-from freamer_rl.health.encoders import (
-    ENCODER_KINDS,
-    HealthEncoder,
-    CNNHealthEncoder,
-    FoundationHealthEncoder,
-    HealthStage1,
-    MLPHealthEncoder,
-    SlotCrossAttnHealthEncoder,
-    make_health_encoder,
-)
+from freamer_rl.health import encoders, reference
+from freamer_rl.health.encoders import *  # noqa: F403
 from freamer_rl.health.pipeline import (
     HealthAgent,
     HealthConfig,
@@ -37,24 +29,13 @@ from freamer_rl.health.pipeline import (
     load_health_config,
     run_health,
 )
-from freamer_rl.health.reference import (
-    REFERENCE_POLICIES,
-    ConstantActionPolicy,
-    HeartRateThresholdPolicy,
-    UniformRandomPolicy,
-    evaluate_reference,
-    make_reference_policy,
-)
+from freamer_rl.health.reference import *  # noqa: F403
+
+#: submodule constants left out of ``__all__`` (``IMU_SITES`` would clash with :data:`freamer_rl.data.IMU_SITES`)
+_NOT_REEXPORTED = frozenset({"IMU_DIM", "HR_DIM", "IMU_SITES", "IMU_CHANNELS", "ACTION_NAMES"})
 
 __all__ = [
-    "ENCODER_KINDS",
-    "HealthEncoder",
-    "MLPHealthEncoder",
-    "CNNHealthEncoder",
-    "HealthStage1",
-    "SlotCrossAttnHealthEncoder",
-    "FoundationHealthEncoder",
-    "make_health_encoder",
+    *(name for name in encoders.__all__ if name not in _NOT_REEXPORTED),
     "HealthConfig",
     "HealthAgent",
     "HealthPolicy",
@@ -66,10 +47,5 @@ __all__ = [
     "run_health",
     "anomaly_report",
     "imagination_horizon",
-    "REFERENCE_POLICIES",
-    "ConstantActionPolicy",
-    "UniformRandomPolicy",
-    "HeartRateThresholdPolicy",
-    "make_reference_policy",
-    "evaluate_reference",
+    *(name for name in reference.__all__ if name not in _NOT_REEXPORTED),
 ]

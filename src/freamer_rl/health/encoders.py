@@ -49,7 +49,7 @@ from freamer_rl.layers.dnc import DNCMemory
 from freamer_rl.layers.encoders import CrossModalAttention
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser, smoothness_loss
-from freamer_rl.world_model.encoder import StepEncoder
+from freamer_rl.world_model.encoder import StatelessStepMixin, StepEncoder
 from freamer_rl.world_model.rssm import mlp, symlog
 
 logger = logging.getLogger(__name__)
@@ -87,7 +87,7 @@ def _check(name: str, x: torch.Tensor, dim: int) -> None:
         raise ValueError(f"observation {name!r}: expected shape [*B, {dim}], got {tuple(x.shape)}")
 
 
-class _HealthEncoderMixin:
+class _HealthEncoderMixin(StatelessStepMixin):
     """Input handling and the stateless step API shared by the four encoders."""
 
     imu_key: NestedKey
@@ -117,32 +117,12 @@ class _HealthEncoderMixin:
         imu = imu.float()
         return (symlog(imu) if self.symlog_inputs else imu), hr.float()
 
-    # -- online step API (stateless default) ------------------------------------------------------------------
-    def state_shapes(self) -> dict[str, tuple[int, ...]]:
-        """Recurrent state entries ``{name: per-element shape}``; empty for a stateless encoder."""
-        return {}
-
-    def initial_state(self, batch_shape: Sequence[int] = (), device=None) -> dict[str, torch.Tensor]:
-        """Zero state ``{name: [*batch_shape, *shape]}`` (empty for a stateless encoder)."""
-        return {n: torch.zeros(*batch_shape, *s, device=device) for n, s in self.state_shapes().items()}
-
+    # -- online step API: the stateless defaults of StatelessStepMixin, stepping through ``_embed`` -----------------
     def step(
         self, obs: Mapping, state: Mapping[str, torch.Tensor] | None = None, is_first: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """One online step: ``obs {key: [*B, d]}`` -> ``(embed [*B, E], new_state)``. Stateless: ``forward``."""
         return self._embed(obs), {}
-
-    def aux_loss(self) -> dict[str, torch.Tensor]:
-        """Auxiliary losses of the last forward pass (none for this encoder)."""
-        return {}
-
-    def clear_cache(self) -> None:
-        """Nothing kept (no auxiliary losses)."""
-
-    @property
-    def gates(self) -> dict[str, float]:
-        """No flow-matching refiners: ``{}``."""
-        return {}
 
 
 class MLPHealthEncoder(_HealthEncoderMixin, nn.Module):

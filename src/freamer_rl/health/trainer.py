@@ -47,8 +47,8 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler
 
-from freamer_rl.checkpoint import atomic_write_text, latest_checkpoint, list_checkpoints, read_checkpoint
-from freamer_rl.checkpoint import remove_stale_temps, save_checkpoint
+from freamer_rl.checkpoint import atomic_write_text, latest_checkpoint, read_checkpoint, resume_checkpoint
+from freamer_rl.checkpoint import save_checkpoint
 from freamer_rl.config import ConfigError
 from freamer_rl.errors import CheckpointError, FreamerError
 from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, save_agent
@@ -162,16 +162,9 @@ class HealthTrainer:
 
     # -- construction -------------------------------------------------------------------------------------------------
     def _find_checkpoint(self, resume: bool) -> Path | None:
-        ckpt_dir = self.run_dir / "checkpoints"
-        for folder in (self.run_dir, ckpt_dir):  # temporary files of killed writes (we hold the lock: no writer)
-            remove_stale_temps(folder)
-        path = latest_checkpoint(self.run_dir)
-        if not resume and (path is not None or list_checkpoints(ckpt_dir)):
-            raise FreamerError(
-                f"run dir {self.run_dir} already holds checkpoints; use another run.name or delete it yourself "
-                "(resume is the default: drop --no-resume to continue it)"
-            )
-        return path
+        return resume_checkpoint(
+            self.run_dir, resume, "delete it yourself (resume is the default: drop --no-resume to continue it)"
+        )
 
     @staticmethod
     def _frames_of(path: Path | None) -> int:

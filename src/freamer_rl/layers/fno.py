@@ -23,6 +23,11 @@ from freamer_rl.layers.checks import check_finite, value_checks_active
 __all__ = ["SpectralConv1d", "StateFNOEncoder", "FNOFuser", "smoothness_loss"]
 
 
+def _compute_dtype(x: torch.Tensor) -> torch.dtype:
+    """The dtype the spectral maths runs in: float64 for float64 inputs, float32 otherwise (autocast is off)."""
+    return torch.float64 if x.dtype == torch.float64 else torch.float32
+
+
 class SpectralConv1d(nn.Module):
     """1-D spectral convolution ``y = IFFT(R_k . FFT(x))`` on the first ``modes`` Fourier modes (Eq. A14-A15).
 
@@ -69,15 +74,26 @@ class SpectralConv1d(nn.Module):
                 f"available for input length n={n}; use modes <= {n // 2 + 1}"
             )
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        if x.ndim < 2 or x.shape[-2] != self.in_channels:
+    def _checked_length(self, x: torch.Tensor, *, channels_last: bool) -> int:
+        """Length ``N`` of ``x [*B, C_in, N]`` (``[*B, N, C_in]`` if ``channels_last``); ``ValueError`` if the
+        channels or the length (:meth:`check_length`) do not fit."""
+        if x.ndim < 2 or x.shape[-1 if channels_last else -2] != self.in_channels:
+            if channels_last:
+                raise ValueError(
+                    f"SpectralConv1d.forward_channels_last expects x of shape [*B, N, in_channels={self.in_channels}]; "
+                    f"got {tuple(x.shape)}"
+                )
             raise ValueError(
                 f"SpectralConv1d expects x of shape [*B, in_channels={self.in_channels}, N]; got {tuple(x.shape)}"
             )
-        n = x.shape[-1]
+        n = x.shape[-2 if channels_last else -1]
         self.check_length(n)
+        return n
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        n = self._checked_length(x, channels_last=False)
         out_dtype = x.dtype
-        compute_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
+        compute_dtype = _compute_dtype(x)
         with torch.autocast(device_type=x.device.type, enabled=False):
             xf = x.to(compute_dtype)
             x_ft = torch.fft.rfft(xf, dim=-1)[..., : self.modes]  # [*B, C_in, K]
@@ -126,15 +142,9 @@ class SpectralConv1d(nn.Module):
         lengths here (49 grid cells, d = 128) this is several times faster on CPU, forward and backward, and
         avoids the layout transposes around a 1x1 convolution.
         """
-        if x.ndim < 2 or x.shape[-1] != self.in_channels:
-            raise ValueError(
-                f"SpectralConv1d.forward_channels_last expects x of shape [*B, N, in_channels={self.in_channels}]; "
-                f"got {tuple(x.shape)}"
-            )
-        n = x.shape[-2]
-        self.check_length(n)
+        n = self._checked_length(x, channels_last=True)
         out_dtype = x.dtype
-        compute_dtype = torch.float64 if x.dtype == torch.float64 else torch.float32
+        compute_dtype = _compute_dtype(x)
         with torch.autocast(device_type=x.device.type, enabled=False):
             xf = x.to(compute_dtype)
             fwd_re, fwd_im, inv_re, inv_im = self._dft_bases(n, compute_dtype, x.device)

@@ -63,22 +63,27 @@ class StatelessStepMixin:
     ``[*B, E]``: no state, no auxiliary losses, no gates."""
 
     def state_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Recurrent state entries ``{name: per-element shape}``; empty for a stateless encoder."""
         return {}
 
     def initial_state(self, batch_shape: Sequence[int] = (), device=None) -> dict[str, torch.Tensor]:
+        """Zero state ``{name: [*batch_shape, *shape]}`` (empty for a stateless encoder)."""
         return {n: torch.zeros(*batch_shape, *s, device=device) for n, s in self.state_shapes().items()}
 
     def step(
         self, obs: Mapping, state: Mapping[str, torch.Tensor] | None = None, is_first: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """One online step: ``forward(obs)``, no state (``state`` and ``is_first`` are ignored)."""
         return self(obs), {}
 
     def aux_loss(self) -> dict[str, torch.Tensor]:
+        """Auxiliary losses of the last forward pass (none for this encoder)."""
         return {}
 
     def clear_cache(self) -> None:
-        """Nothing kept."""
+        """Nothing kept (no auxiliary losses)."""
 
     @property
     def gates(self) -> dict[str, float]:
+        """No flow-matching refiners: ``{}``."""
         return {}
