@@ -57,7 +57,7 @@ def write_report(results: list[dict], out: Path, args) -> str:
         "|---|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        ft = f"{r['frames_to_target']:,}" if r["frames_to_target"] else "not reached"
+        ft = "-" if target is None else f"{r['frames_to_target']:,}" if r["frames_to_target"] else "not reached"
         et = f"{r['episodes_to_target']:,}" if r["episodes_to_target"] else "-"
         lines.append(f"| {NAMES[r['method']]} | {r['seed']} | {r['final_return_mean']:.1f} | {ft} | {et} | "
                      f"{r['fps']:.0f} |")
