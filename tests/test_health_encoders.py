@@ -16,6 +16,7 @@ from freamer_rl.health.encoders import (
 from freamer_rl.world_model import WorldModel
 
 BATCH_SHAPES = [(), (2,), (3, 2)]
+WM_LOSSES = {"loss_rec", "loss_kl", "loss_rew", "loss_con"}
 E = 12
 
 
@@ -48,7 +49,7 @@ def test_shapes_and_step_api(kind, shape):
         assert new_state[name].shape == (*shape, *s)
     if kind != "foundation":
         torch.testing.assert_close(enc(o), out)
-        assert enc.aux_loss() == {}
+        assert enc.make_aux_loss() is None
 
 
 @pytest.mark.parametrize("kind", ["mlp", "cnn", "slotattn"])
@@ -106,9 +107,10 @@ def test_foundation_sequence_equals_steps(lead):
             outs.append(out)
             torch.testing.assert_close(mems[..., t, :, :], state["memory"], atol=1e-5, rtol=1e-5)
         torch.testing.assert_close(seq, torch.stack(outs, dim=-2), atol=1e-5, rtol=1e-5)
-        # the TensorDict path (what WorldModel.embed calls): sequence mode without a memory key
+        # the TensorDict path (what WorldModel.embed calls): recurrent mode without a memory key
         td = TensorDict({**o, "is_init": is_init.unsqueeze(-1)}, batch_size=(*lead, T))
-        enc(td)
+        with set_recurrent_mode(True):
+            enc(td)
         torch.testing.assert_close(td["obs_embed"], seq, atol=1e-5, rtol=1e-5)
         assert td["next", "dnc", "memory"].shape == (*lead, T, 4, 6)
     # a reset really forgets: changing the steps before a reset does not change the output after it
@@ -142,8 +144,8 @@ def test_foundation_td_step_mode_and_errors():
     torch.testing.assert_close(tdseq["obs_embed"], ref_seq)
     with pytest.raises(KeyError, match="is_init"):
         enc(TensorDict(obs((3,)), [3]))
-    with pytest.raises(RuntimeError, match="forward"):
-        tiny("foundation").aux_loss()
+    with pytest.raises(KeyError, match="embed"):  # no hidden cache: the loss reads a tensordict the trunk wrote
+        tiny("foundation").make_aux_loss()(TensorDict(obs((3,)), [3]))
 
 
 @pytest.mark.parametrize("kind", ENCODER_KINDS)
@@ -161,13 +163,13 @@ def test_plugs_into_world_model_loss(kind):
         },
         [B, T],
     )
-    losses, latents = wm.loss(batch, return_latents=True)
-    total = losses["total"]
-    aux = enc.aux_loss()
+    aux_loss = enc.make_aux_loss(lambda_fm=0.1, lambda_smooth=1e-3)  # FreamerAuxLoss on the encoder's tensordict
+    losses, latents = wm.loss(batch, return_latents=True, aux_loss=aux_loss)
+    total = losses["total"]  # includes 0.1 * L_FM + 1e-3 * L_smooth
     if kind == "foundation":
+        aux = {k: v for k, v in losses.items() if k.startswith("loss_") and k not in WM_LOSSES}
         assert set(aux) == {"loss_fm", "loss_smooth"}
         assert all(torch.isfinite(v) for v in aux.values())
-        total = total + 0.1 * aux["loss_fm"] + 1e-3 * aux["loss_smooth"]
     total.backward()
     assert torch.isfinite(total)
     assert latents.batch_size == (B * (T + 1),)
@@ -176,3 +178,16 @@ def test_plugs_into_world_model_loss(kind):
     if kind == "foundation":  # the FM velocity fields learn from L_FM
         vel = enc.refiners["imu"].net[-1].weight.grad
         assert vel is not None and vel.abs().sum() > 0
+
+
+def test_foundation_loads_checkpoints_of_the_former_hand_wired_encoder():
+    """State dicts written before the shared trunk (names stage1.*, refiners.<m>.*, fuser.*, dnc.*) still load."""
+    enc = tiny("foundation")
+    legacy = {"stage1.site_embed": torch.full((3, 8), 0.5), "refiners.heart_rate.alpha": torch.tensor(2.0),
+              "fuser.residual_scale": torch.tensor(0.7), "dnc.out.bias": torch.full((E,), 0.25)}
+    result = enc.load_state_dict(legacy, strict=False)
+    assert not result.unexpected_keys
+    assert torch.equal(enc.stage1.site_embed, legacy["stage1.site_embed"])
+    assert enc.refiners["heart_rate"].alpha.item() == 2.0
+    assert enc.fuser.residual_scale.item() == pytest.approx(0.7)
+    assert torch.equal(enc.dnc.dnc.out.bias, legacy["dnc.out.bias"])

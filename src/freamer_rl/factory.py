@@ -10,15 +10,21 @@ The result is made of plain TorchRL/tensordict parts::
 ``ClipPPOLoss(actor_value.get_policy_operator(), actor_value.get_value_operator())`` works as usual. The trainer
 runs the trunk once per minibatch and gives ClipPPOLoss the two heads (TorchRL's documented shared-trunk option),
 so the auxiliary losses (Eq. 6) can read the same intermediate keys.
+
+Layers 2-4 (refiners -> stack -> FNO -> DNC) come from :func:`build_filter_mix_memory`, the one trunk builder that
+every domain uses (the health foundation encoder, :class:`~freamer_rl.health.encoders.FoundationHealthEncoder`,
+puts its own Stage 1 in front of the same layers).
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
 from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Composite
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
@@ -85,44 +91,14 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
     d = cfg.embed_dim
     steps: list[nn.Module] = _layer1_encoders(observation_spec, cfg)
 
-    # Layer 2: one flow-matching refiner per modality, each with its own gate init (Eq. 1-3).
-    refiners = nn.ModuleDict()
-    for m in modalities:
-        refiners[m] = FlowMatchingRefiner(
-            dim=d, hidden=cfg.flow.hidden, steps=cfg.flow.steps,
-            gate_init=cfg.flow.gate_init.get(m, MODALITIES[m].gate_init),
-        )
-        steps.append(TensorDictModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
-
-    # Layer 3: spectral fusion over the M refined embeddings (Eq. A14-A15).
-    steps.append(
-        TensorDictModule(
-            StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"]
-        )
-    )
-    fuser = FNOFuser(
-        num_modalities=len(modalities),
-        dim=d,
-        modes=cfg.fno.modes,
-        residual_scale=cfg.fno.residual_scale,
-        output_norm=cfg.fno.output_norm,
-    )
-    steps.append(TensorDictModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
-
-    # Layer 4: DNC episodic memory (Appendix F.1) or a plain projection when disabled.
-    dnc = None
-    if cfg.dnc.enabled:
-        dnc = DNCModule(
-            input_dim=d,
-            memory_slots=cfg.dnc.memory_slots,
-            memory_width=cfg.dnc.memory_width,
-            output_dim=d,
-            in_key="fused",
-            out_key="hidden",
-        )
-        steps.append(dnc)
-    else:
-        steps.append(TensorDictModule(nn.Sequential(nn.Linear(d, d), nn.GELU()), in_keys=["fused"], out_keys=["hidden"]))
+    # Layers 2-4: flow-matching refiners, FNO fusion, DNC memory (the shared trunk builder).
+    layers, refiners, fuser, dnc = build_filter_mix_memory(
+        modalities, d, flow_hidden=cfg.flow.hidden, flow_steps=cfg.flow.steps,
+        gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
+        fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
+        dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
+    )  # fmt: skip
+    steps.extend(layers)
     trunk = TensorDictSequential(*steps)
 
     actor = build_actor(action_spec, d, cfg.head_hidden)
@@ -138,6 +114,79 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
         dnc=dnc,
         modalities=modalities,
     )
+
+
+def build_filter_mix_memory(
+    modalities: Sequence[str],
+    dim: int,
+    *,
+    flow_hidden: int,
+    flow_steps: int,
+    gate_init: Mapping[str, float],
+    fno_modes: int,
+    fno_residual_scale: float,
+    fno_output_norm: bool = False,
+    dnc: bool = True,
+    memory_slots: int = 32,
+    memory_width: int = 64,
+    output_dim: int | None = None,
+    out_key: NestedKey = "hidden",
+    memory_key: NestedKey = ("dnc", "memory"),
+    is_init_key: NestedKey = "is_init",
+) -> tuple[list[nn.Module], nn.ModuleDict, FNOFuser, DNCModule | None]:
+    """Layers 2-4 of FreamerV1 as TensorDict modules: the one trunk builder of every domain.
+
+    For M = ``len(modalities)`` modalities of width ``d = dim`` the returned ``steps`` (to put in a
+    ``TensorDictSequential`` after the Layer-1 encoders that wrote ``("embed", m) [*B, d]``) are::
+
+        ("embed", m)   -> FlowMatchingRefiner_m -> ("refined", m)        [*B, d]         Eq. 1-3, one per modality
+        ("refined", *) -> StackModalities      -> "modal_stack"          [*B, M, d]
+        "modal_stack"  -> FNOFuser             -> "fused", "fused_modalities"  [*B, d], [*B, M, d]  Eq. A14-A15
+        "fused"        -> DNCModule            -> out_key [*B, D_out], ("next", *memory_key) [*B, N, W]  App. F.1
+                          (``dnc=False``: Linear(d, D_out) -> GELU, stateless)
+
+    The modules are built in that order (refiners in ``modalities`` order, then the fuser, then the DNC), so a seeded
+    model gets the same initial weights wherever it is built. ``fno_modes`` is used as given (the fuser checks it
+    against ``d``). The DNC follows TorchRL's stateful pattern: step mode by default, ``[*B, T]`` sequences under
+    ``torchrl.modules.set_recurrent_mode(True)``.
+
+    Args:
+        modalities: modality names ``m`` (keys ``("embed", m)``, ``("refined", m)``).
+        dim: embedding width ``d``. flow_hidden, flow_steps: velocity MLP width and Euler steps of each refiner.
+        gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
+        fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
+        dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
+        output_dim: ``D_out`` (default ``d``). out_key: where Layer 4 writes ``e_aug``.
+        memory_key, is_init_key: DNC state and episode-start keys.
+
+    Returns:
+        ``(steps, refiners, fuser, dnc)``: the TensorDict modules, ``{m: FlowMatchingRefiner}``, the fuser and the
+        :class:`~freamer_rl.layers.dnc.DNCModule` (``None`` when ``dnc=False``).
+    """
+    missing = [m for m in modalities if m not in gate_init]
+    if missing:
+        raise ValueError(f"gate_init: no initial gate for modalities {missing} (given: {sorted(gate_init)})")
+    d_out = dim if output_dim is None else output_dim
+    steps: list[nn.Module] = []
+    refiners = nn.ModuleDict()
+    for m in modalities:
+        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m])
+        steps.append(TensorDictModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
+    steps.append(
+        TensorDictModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
+    )
+    fuser = FNOFuser(num_modalities=len(modalities), dim=dim, modes=fno_modes, residual_scale=fno_residual_scale,
+                     output_norm=fno_output_norm)  # fmt: skip
+    steps.append(TensorDictModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
+    memory = None
+    if dnc:
+        memory = DNCModule(input_dim=dim, memory_slots=memory_slots, memory_width=memory_width, output_dim=d_out,
+                           in_key="fused", out_key=out_key, memory_key=memory_key, is_init_key=is_init_key)  # fmt: skip
+        steps.append(memory)
+    else:
+        steps.append(TensorDictModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
+                                      out_keys=[out_key]))  # fmt: skip
+    return steps, refiners, fuser, memory
 
 
 def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.Module]:

@@ -114,7 +114,16 @@ class FreamerAuxLoss(LossModule):
         return out
 
     def _embed(self, td: TensorDictBase, m: str) -> torch.Tensor:
-        return td.get((*_as_tuple(self.tensor_keys.embed), m))
+        return self._get(td, (*_as_tuple(self.tensor_keys.embed), m))
+
+    @staticmethod
+    def _get(td: TensorDictBase, key: NestedKey) -> torch.Tensor:
+        """``td[key]``, or a ``KeyError`` naming the key (it is written by a trunk pass on this tensordict)."""
+        value = td.get(key, None)
+        if value is None:
+            raise KeyError(f"FreamerAuxLoss: {key!r} is missing from the tensordict; run the trunk on it first "
+                           "(or give the loss trunk=)")  # fmt: skip
+        return value
 
     def forward(self, td: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
@@ -132,9 +141,9 @@ class FreamerAuxLoss(LossModule):
             out["loss_cl"] = self.lambda_cl * info_nce(v, l, self.temperature) if v.numel() // v.shape[-1] > 1 else zero
         if self.lambda_smooth:
             if self.smooth_fuser is not None:
-                rows = self.smooth_fuser(td.get(keys.modal_stack).detach())[1]
+                rows = self.smooth_fuser(self._get(td, keys.modal_stack).detach())[1]
             else:
-                rows = td.get(keys.fused_modalities)
+                rows = self._get(td, keys.fused_modalities)
             out["loss_smooth"] = self.lambda_smooth * smoothness_loss(rows)
         return TensorDict(out, batch_size=[])
 

@@ -24,31 +24,37 @@ encoder; the HR features are used as they are.
 Common interface (all four): ``out_dim`` (= ``E``), ``obs_keys``, ``forward``, and the online *step* API used when
 filtering a real env step by step: ``state_shapes()`` (``{name: per-element shape}``, empty for the stateless ones),
 ``initial_state(batch_shape)`` and ``step(obs, state, is_first) -> (embed [*B, E], new_state)``; plus
-``aux_loss()`` (``{}`` except for the foundation encoder), ``clear_cache()`` and ``gates`` (``{}`` except for the
-foundation encoder). :class:`HealthEncoder` is that interface as a typed ``Protocol``: the pipeline calls it
-without probing what an encoder can do.
+``make_aux_loss(lambda_fm=, lambda_smooth=)`` (``None`` except for the foundation encoder) and ``gates`` (``{}``
+except for the foundation encoder). :class:`HealthEncoder` is that interface as a typed ``Protocol``: the pipeline
+calls it without probing what an encoder can do.
 
-The foundation encoder is recurrent (the DNC memory). Inside :meth:`WorldModel.loss` it receives a TensorDict of
-batch ``[*B, T+1]`` holding the observations and ``"is_init"`` (``[*B, T+1, 1]``, True where a sequence starts) and
-loops the DNC over time itself, zeroing the memory wherever ``is_init`` is True; online it is driven with
-:meth:`FoundationHealthEncoder.step`. Looping over a sequence equals stepping through it (tested).
+The foundation encoder is the MiniGrid trunk's Layers 2-4 (:func:`freamer_rl.factory.build_filter_mix_memory`)
+behind a health Stage 1, as one ``TensorDictSequential`` (:attr:`FoundationHealthEncoder.trunk`); its auxiliary
+losses are :class:`~freamer_rl.losses.FreamerAuxLoss` read from the tensordict the trunk wrote. It is recurrent (the
+DNC memory) and follows TorchRL's stateful pattern: inside :meth:`WorldModel.loss` it runs under
+``set_recurrent_mode(True)`` on a TensorDict of batch ``[*B, T+1]`` holding the observations and ``"is_init"``
+(``[*B, T+1, 1]``, True where a sequence starts), looping the DNC over time and zeroing the memory wherever
+``is_init`` is True; online it is driven with :meth:`FoundationHealthEncoder.step` (step mode). Looping over a
+sequence equals stepping through it (tested).
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import torch
-from tensordict import TensorDictBase, unravel_key
-from tensordict.nn import TensorDictModuleBase
+from tensordict import TensorDict, TensorDictBase, unravel_key
+from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.modules import set_recurrent_mode
 
-from freamer_rl.layers.dnc import DNCMemory
+from freamer_rl.factory import build_filter_mix_memory
+from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention
-from freamer_rl.layers.flow_matching import FlowMatchingRefiner
-from freamer_rl.layers.fno import FNOFuser, smoothness_loss
+from freamer_rl.layers.fno import FNOFuser
+from freamer_rl.losses import FreamerAuxLoss
 from freamer_rl.world_model.encoder import StatelessStepMixin, StepEncoder
 from freamer_rl.world_model.rssm import mlp, symlog
 
@@ -65,6 +71,7 @@ __all__ = [
     "CNNHealthEncoder",
     "HealthStage1",
     "SlotCrossAttnHealthEncoder",
+    "FoundationStage1",
     "FoundationHealthEncoder",
     "make_health_encoder",
 ]
@@ -87,6 +94,15 @@ def _check(name: str, x: torch.Tensor, dim: int) -> None:
         raise ValueError(f"observation {name!r}: expected shape [*B, {dim}], got {tuple(x.shape)}")
 
 
+def _check_pair(owner: str, imu_name: str, imu: torch.Tensor, hr_name: str, hr: torch.Tensor) -> None:
+    """``imu [*B, 36]`` and ``hr [*B, 16]`` with the same batch dims, else ``ValueError`` naming the keys."""
+    _check(imu_name, imu, IMU_DIM)
+    _check(hr_name, hr, HR_DIM)
+    if imu.shape[:-1] != hr.shape[:-1]:
+        raise ValueError(f"{owner}: batch dims differ: {imu_name!r} {tuple(imu.shape)} vs {hr_name!r} "
+                         f"{tuple(hr.shape)}")  # fmt: skip
+
+
 class _HealthEncoderMixin(StatelessStepMixin):
     """Input handling and the stateless step API shared by the four encoders."""
 
@@ -98,8 +114,8 @@ class _HealthEncoderMixin(StatelessStepMixin):
     def obs_keys(self) -> tuple[NestedKey, NestedKey]:
         return (self.imu_key, self.hr_key)
 
-    def _inputs(self, obs: Mapping | TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
-        """``obs`` mapping -> ``(imu [*B, 36], hr [*B, 16])`` float, IMU symlog-squashed; batch dims must agree."""
+    def _raw_inputs(self, obs: Mapping | TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``obs`` mapping -> ``(imu [*B, 36], hr [*B, 16])`` as given; checks keys, sizes and batch dims."""
         try:
             imu, hr = obs[self.imu_key], obs[self.hr_key]
         except KeyError as err:
@@ -107,13 +123,12 @@ class _HealthEncoderMixin(StatelessStepMixin):
                 f"{type(self).__name__}: observation key {err.args[0]!r} missing (needs {self.imu_key!r} [*B, "
                 f"{IMU_DIM}] and {self.hr_key!r} [*B, {HR_DIM}])"
             ) from None
-        _check(str(self.imu_key), imu, IMU_DIM)
-        _check(str(self.hr_key), hr, HR_DIM)
-        if imu.shape[:-1] != hr.shape[:-1]:
-            raise ValueError(
-                f"{type(self).__name__}: batch dims differ: {self.imu_key!r} {tuple(imu.shape)} vs "
-                f"{self.hr_key!r} {tuple(hr.shape)}"
-            )
+        _check_pair(type(self).__name__, str(self.imu_key), imu, str(self.hr_key), hr)
+        return imu, hr
+
+    def _inputs(self, obs: Mapping | TensorDictBase) -> tuple[torch.Tensor, torch.Tensor]:
+        """``obs`` mapping -> ``(imu [*B, 36], hr [*B, 16])`` float, IMU symlog-squashed; batch dims must agree."""
+        imu, hr = self._raw_inputs(obs)
         imu = imu.float()
         return (symlog(imu) if self.symlog_inputs else imu), hr.float()
 
@@ -260,6 +275,25 @@ class SlotCrossAttnHealthEncoder(_HealthEncoderMixin, nn.Module):
         return self._embed(obs)
 
 
+class FoundationStage1(nn.Module):
+    """Stage 1 of the foundation encoder on raw observations, for its ``TensorDictModule``.
+
+    ``forward(imu [*B, 36], hr [*B, 16]) -> (e_imu [*B, d], e_hr [*B, d])``: checks the shapes, squashes the IMU with
+    symlog (``symlog_inputs``) and runs :class:`HealthStage1` (Eq. A26). The outputs are the Layer-1 embeddings
+    ``("embed", "imu")`` and ``("embed", "heart_rate")`` of the trunk.
+    """
+
+    def __init__(self, stage1: HealthStage1, symlog_inputs: bool = True) -> None:
+        super().__init__()
+        self.stage1 = stage1
+        self.symlog_inputs = symlog_inputs
+
+    def forward(self, imu: torch.Tensor, hr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        _check_pair(type(self).__name__, "imu", imu, "hr_features", hr)
+        imu = imu.float()
+        return self.stage1(symlog(imu) if self.symlog_inputs else imu, hr.float())
+
+
 class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
     """The FreamerV1 foundation encoder of the health domain (Appendix J.2, Stages 1-4).
 
@@ -269,6 +303,12 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         ê_m = e_m + sigmoid(alpha_m) (Euler_N(v_m; e_m) - e_m)    Eq. 1-3, m in (imu, heart_rate) [*B, d] each
         fused, E_out = FNOFuser([ê_imu; ê_hr])                    Eq. A14-A15                    [*B, d], [*B, 2, d]
         o_embed, M_t = DNC(fused, M_{t-1})                        Appendix F.1                   [*B, E], [*B, N, W]
+
+    Stages 2-4 are the MiniGrid trunk's own layers, built by :func:`freamer_rl.factory.build_filter_mix_memory`;
+    :attr:`trunk` is ``TensorDictSequential(Stage 1, refiners, StackModalities, FNOFuser, DNCModule)`` writing
+    ``("embed", m)``, ``("refined", m)`` ``[*B, d]``, ``"modal_stack"`` / ``"fused_modalities"`` ``[*B, 2, d]``,
+    ``"fused"`` ``[*B, d]``, ``out_key`` ``[*B, E]`` and ``("next", *memory_key)`` ``[*B, N, W]``. The auxiliary
+    losses are :class:`~freamer_rl.losses.FreamerAuxLoss` (:meth:`make_aux_loss`) on the tensordict the trunk wrote.
 
     Args:
         out_dim: ``E`` (DNC output size). dim: modality width ``d``. heads, hr_tokens, hidden: Stage 1.
@@ -281,20 +321,14 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         imu_key, hr_key: observation keys. is_init_key: episode-start marker. memory_key: DNC state key
             (root = before the step, ``("next", key)`` = after). out_key: embedding key (the WorldModel reads it).
 
-    TensorDict forward (what :meth:`WorldModel.embed` calls):
-        * **sequence mode** -- when ``torchrl.modules.set_recurrent_mode(True)`` is active, or when no such context
-          is active and ``memory_key`` is absent (the WorldModel.loss case): batch ``[*B, T]`` with time last;
-          starting from ``memory_key[..., 0, :, :]`` if present, else zeros, the DNC loops over ``T`` and zeroes
-          its memory wherever ``is_init[..., t]`` is True. Stages 1-3 and the DNC projections run on all steps at
-          once. Writes ``out_key [*B, T, E]`` and ``("next", memory_key) [*B, T, N, W]``.
-        * **step mode** -- ``set_recurrent_mode(False)``, or ``memory_key`` present without a context: every
-          leading dim is batch; memory zeroed where ``is_init``, one step.
-        ``is_init`` (``[*B, 1]`` or ``[*B]``) is required in sequence mode; in step mode it defaults to False.
+    TensorDict forward -- the mode is chosen only by ``torchrl.modules.set_recurrent_mode`` (TorchRL's pattern):
+        * step mode (default): every leading dim is batch, ``is_init [*B, 1]`` zeroes the memory, one DNC step.
+        * recurrent mode (``set_recurrent_mode(True)``; :meth:`WorldModel.loss` sets it): batch ``[B, T]`` (at least
+          two batch dims, time last); the DNC loops over ``T`` from ``memory_key[..., 0, :, :]`` and zeroes its
+          memory wherever ``is_init[..., t]`` is True.
+        ``is_init`` is required; a missing ``memory_key`` is written as zeros first (what the primer gives at reset).
 
-    Tensor API: :meth:`encode_sequence` and :meth:`step` (online filtering). :meth:`aux_loss` returns the
-    auxiliary terms of the last forward pass with gradients enabled: ``loss_fm`` (mean over the two modalities of
-    the denoising CFM loss on the Stage-1 embeddings, Eq. A13; weight ``lambda_FM(WM) = 0.1``, Table A20) and
-    ``loss_smooth`` (FNO smoothness Eq. A16 on ``E_out``, without ``lambda_s``).
+    Tensor API: :meth:`step` (online filtering, step mode) and :meth:`encode_sequence` (recurrent mode).
     """
 
     def __init__(
@@ -336,147 +370,139 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         self.in_keys = [self.imu_key, self.hr_key, self.is_init_key, self.memory_key]
         self.out_keys = [self.out_key, self.next_memory_key]
         self.fm_noise_std = fm_noise_std
-        self.stage1 = HealthStage1(dim, heads, hr_tokens, hidden)
-        self.refiners = nn.ModuleDict(
-            {m: FlowMatchingRefiner(dim, fm_hidden, fm_steps, gate_init=gates[m]) for m in MODALITIES}
-        )
-        self.fuser = FNOFuser(len(MODALITIES), dim, modes=min(fno_modes, dim // 2 + 1),
-                              residual_scale=fno_residual_scale)  # fmt: skip
-        self.dnc = DNCMemory(dim, memory_slots, memory_width, output_dim=out_dim)
-        self._cache: dict[str, torch.Tensor] | None = None
+        stage1 = TensorDictModule(FoundationStage1(HealthStage1(dim, heads, hr_tokens, hidden), symlog_inputs),
+                                  in_keys=[self.imu_key, self.hr_key],
+                                  out_keys=[("embed", "imu"), ("embed", "heart_rate")])  # fmt: skip
+        layers, refiners, fuser, dnc = build_filter_mix_memory(
+            MODALITIES, dim, flow_hidden=fm_hidden, flow_steps=fm_steps, gate_init=gates,
+            fno_modes=min(fno_modes, dim // 2 + 1), fno_residual_scale=fno_residual_scale,
+            memory_slots=memory_slots, memory_width=memory_width, output_dim=out_dim, out_key=self.out_key,
+            memory_key=self.memory_key, is_init_key=self.is_init_key,
+        )  # fmt: skip
+        self.trunk = TensorDictSequential(stage1, *layers)
+        # references into the trunk (a tuple is not registered: the parameters live once, under ``trunk``)
+        self._parts = (stage1.module.stage1, refiners, fuser, dnc)
+        self._register_load_state_dict_pre_hook(self._rename_legacy_keys)
 
-    # -- stages 1-3 (stateless, any batch shape) -----------------------------------------------------------------
-    def features(self, obs: Mapping) -> dict[str, torch.Tensor]:
-        """Stages 1-3 on ``obs {imu: [*B, 36], hr_features: [*B, 16]}``.
+    def _rename_legacy_keys(self, state_dict: dict, prefix: str, *args) -> None:
+        """Load hook: map the names of the former hand-wired encoder (``stage1.*``, ``refiners.<m>.*``, ``fuser.*``,
+        ``dnc.*``) onto the trunk's, so checkpoints written before the shared trunk still load."""
+        step = {id(getattr(m, "module", m)): i for i, m in enumerate(self.trunk.module)}
+        old = {"stage1.": f"trunk.module.{step[id(self.trunk.module[0].module)]}.module.stage1.",
+               "fuser.": f"trunk.module.{step[id(self.fuser)]}.module.",
+               "dnc.": f"trunk.module.{step[id(self.dnc)]}.dnc."}  # fmt: skip
+        old.update({f"refiners.{m}.": f"trunk.module.{step[id(r)]}.module." for m, r in self.refiners.items()})
+        for key in [k for k in state_dict if k.startswith(prefix)]:
+            for before, after in old.items():
+                if key.startswith(prefix + before):
+                    state_dict[prefix + after + key[len(prefix + before):]] = state_dict.pop(key)
+                    break
 
-        Returns ``("embed", m)``-style entries: ``embed_imu``/``embed_heart_rate`` ``[*B, d]`` (Stage 1),
-        ``refined_imu``/``refined_heart_rate`` ``[*B, d]`` (Stage 2), ``fused_modalities [*B, 2, d]`` and
-        ``fused [*B, d]`` (Stage 3).
-        """
-        e_imu, e_hr = self.stage1(*self._inputs(obs))
-        r_imu = self.refiners["imu"](e_imu)
-        r_hr = self.refiners["heart_rate"](e_hr)
-        fused, e_out = self.fuser(torch.stack([r_imu, r_hr], dim=-2))
-        out = {
-            "embed_imu": e_imu, "embed_heart_rate": e_hr, "refined_imu": r_imu, "refined_heart_rate": r_hr,
-            "fused_modalities": e_out, "fused": fused,
-        }  # fmt: skip
-        if torch.is_grad_enabled():
-            self._cache = {"imu": e_imu, "heart_rate": e_hr, "fused_modalities": e_out}
-        return out
+    @property
+    def stage1(self) -> HealthStage1:
+        """Stage 1 (Eq. A26)."""
+        return self._parts[0]
+
+    @property
+    def refiners(self) -> nn.ModuleDict:
+        """``{m: FlowMatchingRefiner}`` for ``m`` in ``("imu", "heart_rate")`` (Stage 2, Eq. 1-3)."""
+        return self._parts[1]
+
+    @property
+    def fuser(self) -> FNOFuser:
+        """The FNO fuser (Stage 3, Eq. A14-A15)."""
+        return self._parts[2]
+
+    @property
+    def dnc(self) -> DNCModule:
+        """The DNC memory module (Stage 4, Appendix F.1)."""
+        return self._parts[3]
 
     @property
     def gates(self) -> dict[str, float]:
         """Current FM gates ``sigmoid(alpha_m)`` per modality (Eq. 3)."""
         return {m: float(r.gate.detach()) for m, r in self.refiners.items()}
 
-    # -- DNC (Stage 4) ---------------------------------------------------------------------------------------------
     def state_shapes(self) -> dict[str, tuple[int, ...]]:
-        return {"memory": self.dnc.memory_shape}
+        return {"memory": self.dnc.dnc.memory_shape}
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        """Run the trunk (step or recurrent mode, see the class docstring); writes ``out_key`` ``[*B, E]`` and
+        ``("next", *memory_key)`` ``[*B, N, W]`` (plus the intermediate keys) into ``tensordict`` and returns it."""
+        if self.memory_key not in tensordict.keys(include_nested=True):
+            ref = tensordict.get(self.imu_key)
+            zeros = torch.zeros(*tensordict.batch_size, *self.dnc.dnc.memory_shape, device=ref.device)
+            tensordict.set(self.memory_key, zeros)
+        return self.trunk(tensordict)
+
+    def _tensordict(self, obs: Mapping, is_init: torch.Tensor, memory: torch.Tensor | None) -> TensorDictBase:
+        """``obs {key: [*L, d]}``, ``is_init`` bool ``[*L]`` (or ``[*L, 1]``), ``memory [*L, N, W]`` or None -> the
+        trunk's input tensordict of batch ``[*L]``."""
+        imu, hr = self._raw_inputs(obs)
+        lead = imu.shape[:-1]
+        if is_init.shape == (*lead, 1):
+            is_init = is_init.squeeze(-1)
+        if is_init.shape != lead:
+            raise ValueError(f"is_init: expected shape {tuple(lead)} (or with a trailing 1), got "
+                             f"{tuple(is_init.shape)}")  # fmt: skip
+        td = TensorDict({self.imu_key: imu, self.hr_key: hr, self.is_init_key: is_init.bool().unsqueeze(-1)},
+                        batch_size=lead, device=imu.device)  # fmt: skip
+        if memory is not None:
+            if tuple(memory.shape) != (*lead, *self.dnc.dnc.memory_shape):
+                raise ValueError(f"memory: expected shape {(*lead, *self.dnc.dnc.memory_shape)}, got "
+                                 f"{tuple(memory.shape)}")  # fmt: skip
+            td.set(self.memory_key, memory)
+        return td
 
     def step(
         self, obs: Mapping, state: Mapping[str, torch.Tensor] | None = None, is_first: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        """One online step. ``obs {key: [*B, d]}``, ``state {"memory": [*B, N, W]}`` (zeros when omitted),
-        ``is_first`` bool ``[*B]`` (memory zeroed there) -> ``(embed [*B, E], {"memory": [*B, N, W]})``."""
-        x = self.features(obs)["fused"]
-        lead = x.shape[:-1]
+        """One online step (step mode). ``obs {key: [*B, d]}``, ``state {"memory": [*B, N, W]}`` (zeros when
+        omitted), ``is_first`` bool ``[*B]`` (memory zeroed there; False when omitted) ->
+        ``(embed [*B, E], {"memory": [*B, N, W]})``."""
+        imu = self._raw_inputs(obs)[0]
+        lead = imu.shape[:-1]
+        if is_first is None:
+            is_first = torch.zeros(lead, dtype=torch.bool, device=imu.device)
         memory = None if state is None else state.get("memory")
-        if memory is None:
-            memory = self.dnc.initial_memory(tuple(lead), dtype=x.dtype, device=x.device)
-        if is_first is not None:
-            first = is_first.reshape(lead).bool()
-            memory = torch.where(first[..., None, None], torch.zeros_like(memory), memory)
-        out, memory = self.dnc.step(x, memory)
-        return out, {"memory": memory}
+        td = self._tensordict(obs, is_first.reshape(lead), memory)
+        with set_recurrent_mode(False):
+            td = self(td)
+        return td.get(self.out_key), {"memory": td.get(self.next_memory_key)}
 
     def encode_sequence(
         self, obs: Mapping, is_init: torch.Tensor, memory: torch.Tensor | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Sequence mode on tensors: ``obs {key: [*B, T, d]}``, ``is_init`` bool ``[*B, T]`` (or ``[*B, T, 1]``),
+        """Recurrent mode on tensors: ``obs {key: [*B, T, d]}``, ``is_init`` bool ``[*B, T]`` (or ``[*B, T, 1]``),
         ``memory [*B, N, W]`` before step 0 (zeros when omitted) -> ``(embed [*B, T, E], memories [*B, T, N, W])``
-        where ``memories[..., t]`` is the memory after step ``t``."""
-        x = self.features(obs)["fused"]  # [*B, T, d]
-        if x.ndim < 2:
-            raise ValueError(f"encode_sequence: expected observations [*B, T, d], got fused shape {tuple(x.shape)}")
-        lead, T = x.shape[:-2], x.shape[-2]
-        if is_init.shape == (*x.shape[:-1], 1):
-            is_init = is_init.squeeze(-1)
-        if is_init.shape != x.shape[:-1]:
-            raise ValueError(f"is_init: expected shape {tuple(x.shape[:-1])} (or with a trailing 1), got "
-                             f"{tuple(is_init.shape)}")  # fmt: skip
-        m = memory if memory is not None else self.dnc.initial_memory(tuple(lead), dtype=x.dtype, device=x.device)
-        if tuple(m.shape) != (*lead, *self.dnc.memory_shape):
-            raise ValueError(f"memory: expected shape {(*lead, *self.dnc.memory_shape)}, got {tuple(m.shape)}")
-        controls = self.dnc.interface_vectors(x)  # memory-independent projections, all steps at once
-        first = is_init.bool()
-        reads, mems = [], []
-        for t in range(T):
-            m = torch.where(first[..., t, None, None], torch.zeros_like(m), m)
-            r, m = self.dnc.memory_step({k: v[..., t, :] if v.ndim == x.ndim else v[..., t]
-                                         for k, v in controls.items()}, m)  # fmt: skip
-            reads.append(r)
-            mems.append(m)
-        out = self.dnc.output(x, torch.stack(reads, dim=-2))
-        return out, torch.stack(mems, dim=-3)
-
-    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        from torchrl.modules import recurrent_mode
-
-        keys = tensordict.keys(include_nested=True)
-        rm = recurrent_mode()
-        sequence = bool(rm) if rm is not None else self.memory_key not in keys
-        is_init = tensordict.get(self.is_init_key, None)
-        obs = {self.imu_key: tensordict.get(self.imu_key), self.hr_key: tensordict.get(self.hr_key)}
-        if sequence:
-            if is_init is None:
-                raise KeyError(
-                    f"FoundationHealthEncoder (sequence mode: no {self.memory_key!r} in the tensordict) needs "
-                    f"{self.is_init_key!r} [*B, T, 1] marking sequence starts; for online use call .step() or "
-                    f"provide {self.memory_key!r} (step mode)"
-                )
-            if tensordict.batch_dims < 1:
-                raise ValueError("FoundationHealthEncoder sequence mode needs a [*B, T] tensordict (time last)")
-            memory = tensordict.get(self.memory_key, None)
-            if memory is not None:
-                memory = memory[..., 0, :, :]
-            out, mems = self.encode_sequence(obs, is_init, memory)
-        else:
-            state = {"memory": tensordict.get(self.memory_key)} if self.memory_key in keys else None
-            first = None if is_init is None else is_init.reshape(tensordict.batch_size)
-            out, new_state = self.step(obs, state, first)
-            mems = new_state["memory"]
-        tensordict.set(self.out_key, out)
-        tensordict.set(self.next_memory_key, mems)
-        return tensordict
+        where ``memories[..., t]`` is the memory after step ``t``. A single sequence ``[T]`` is run as ``[1, T]``."""
+        lead = self._raw_inputs(obs)[0].shape[:-1]
+        if len(lead) < 1:
+            raise ValueError(f"encode_sequence: expected observations [*B, T, d], got batch dims {tuple(lead)}")
+        if memory is not None:
+            if tuple(memory.shape) != (*lead[:-1], *self.dnc.dnc.memory_shape):
+                raise ValueError(f"memory: expected shape {(*lead[:-1], *self.dnc.dnc.memory_shape)}, got "
+                                 f"{tuple(memory.shape)}")  # fmt: skip
+            memory = memory.unsqueeze(-3).expand(*lead, *self.dnc.dnc.memory_shape)  # only t = 0 is read
+        td = self._tensordict(obs, is_init, memory)
+        single = td.batch_dims == 1
+        with set_recurrent_mode(True):
+            td = self(td.unsqueeze(0) if single else td)
+        out, mems = td.get(self.out_key), td.get(self.next_memory_key)
+        return (out[0], mems[0]) if single else (out, mems)
 
     def make_tensordict_primer(self):
         """A ``TensorDictPrimer`` declaring ``memory_key`` ``[N, W]`` (zeros at reset) for TorchRL envs."""
-        from torchrl.data import Unbounded
-        from torchrl.envs.transforms import TensorDictPrimer
+        return self.dnc.make_tensordict_primer()
 
-        return TensorDictPrimer({self.memory_key: Unbounded(shape=self.dnc.memory_shape, dtype=torch.float32)},
-                                expand_specs=True)  # fmt: skip
-
-    # -- auxiliary losses ------------------------------------------------------------------------------------------
-    def aux_loss(self) -> dict[str, torch.Tensor]:
-        """Auxiliary terms of the last forward pass run with gradients enabled.
-
-        * ``loss_fm``: mean over ``imu`` and ``heart_rate`` of ``FlowMatchingRefiner.cfm_loss(e_m, fm_noise_std)``
-          on the Stage-1 embeddings (Eq. A13; the embeddings are detached inside: only the velocity fields learn).
-        * ``loss_smooth``: :func:`~freamer_rl.layers.fno.smoothness_loss` of the FNO output ``E_out`` (Eq. A16
-          without ``lambda_s``).
-        Raises ``RuntimeError`` when no forward pass with gradients has run yet.
-        """
-        if self._cache is None:
-            raise RuntimeError("FoundationHealthEncoder.aux_loss: run a forward pass with gradients enabled first")
-        c = self._cache
-        fm = sum(self.refiners[m].cfm_loss(c[m], self.fm_noise_std) for m in MODALITIES) / len(MODALITIES)
-        return {"loss_fm": fm, "loss_smooth": smoothness_loss(c["fused_modalities"])}
-
-    def clear_cache(self) -> None:
-        """Drop the tensors kept for :meth:`aux_loss`."""
-        self._cache = None
+    def make_aux_loss(self, *, lambda_fm: float = 0.1, lambda_smooth: float = 1e-3) -> FreamerAuxLoss:
+        """The auxiliary losses (the MiniGrid trunk's :class:`~freamer_rl.losses.FreamerAuxLoss`) on a tensordict
+        this encoder wrote: ``loss_fm = lambda_fm * mean_m CFM_m(("embed", m))`` (Eq. A13, noise ``fm_noise_std``;
+        the embeddings are detached inside, only the velocity fields learn) and ``loss_smooth = lambda_smooth *
+        L_smooth("fused_modalities")`` (Eq. A16 on ``E_out [*B, 2, d]``, gradient into every stage: the literal
+        Eq. 6), plus detached ``fm_imu``, ``fm_heart_rate``."""
+        return FreamerAuxLoss(self.refiners, lambda_fm=lambda_fm, lambda_cl=0.0, lambda_smooth=lambda_smooth,
+                              noise_std=self.fm_noise_std, smooth_fuser=None)  # fmt: skip
 
 
 def make_health_encoder(kind: str, out_dim: int = 128, **kwargs) -> nn.Module:

@@ -19,7 +19,8 @@ Loop (``collect.iterations`` times, after ``collect.prefill_frames`` frames of r
        (HealthPolicy; with probability collect.random_action_prob a random action) -> replay buffer
        (LazyTensorStorage + SliceSampler over ("collector", "traj_ids"))
     2. world_model.train_steps steps of Eq. A27 on [batch_size, seq_len] slices,
-       + lambda_FM * L_FM + lambda_s * L_smooth for the foundation encoder (Table A20: lambda_FM(WM) = 0.1)
+       + lambda_FM * L_FM + lambda_s * L_smooth for the foundation encoder (Table A20: lambda_FM(WM) = 0.1;
+       FreamerAuxLoss on the tensordict its trunk wrote)
     3. imagination.updates ImaginationPPO updates (ClipPPOLoss + GAE on horizon-15 imagined rollouts seeded with
        posterior latents of replayed slices)
 
@@ -46,6 +47,7 @@ import yaml
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler
+from torchrl.objectives import LossModule
 
 from freamer_rl.checkpoint import atomic_write_text, latest_checkpoint, read_checkpoint, resume_checkpoint
 from freamer_rl.checkpoint import save_checkpoint
@@ -74,26 +76,24 @@ _STRUCTURAL = ("env", "encoder", "world_model")
 def train_world_model_step(
     world_model: WorldModel, batch: TensorDictBase, optimizer: torch.optim.Optimizer, *, lambda_fm: float = 0.1,
     lambda_smooth: float = 1e-3, grad_clip: float | None = 1.0, stats: StepStats | None = None,
+    aux_loss: LossModule | None = None,
 ) -> dict[str, float]:  # fmt: skip
-    """One gradient step of Eq. A27 on a ``[N, T]`` slice plus the encoder's auxiliary losses (foundation:
-    ``lambda_fm * loss_fm + lambda_smooth * loss_smooth``; ``{}`` for the others) through
-    :func:`~freamer_rl.optim.optimizer_step`. Returns float metrics (``total`` includes the auxiliary terms;
-    ``grad_norm``; ``skipped`` = 1.0 for a non-finite gradient, whose update is skipped and counted in ``stats``)."""
+    """One gradient step of Eq. A27 on a ``[N, T]`` slice plus the encoder's auxiliary losses through
+    :func:`~freamer_rl.optim.optimizer_step`.
+
+    The auxiliary loss is ``aux_loss``, else the encoder's ``make_aux_loss(lambda_fm=, lambda_smooth=)`` (foundation:
+    :class:`~freamer_rl.losses.FreamerAuxLoss`, ``loss_fm`` and ``loss_smooth`` already weighted; ``None`` for the
+    others); :meth:`WorldModel.loss` runs it on the tensordict the encoder wrote for this slice. Returns float metrics
+    (``total`` includes the auxiliary terms; ``grad_norm``; ``skipped`` = 1.0 for a non-finite gradient, whose update
+    is skipped and counted in ``stats``)."""
     world_model.train()
-    losses = world_model.loss(batch)
+    if aux_loss is None:
+        aux_loss = world_model.encoder.make_aux_loss(lambda_fm=lambda_fm, lambda_smooth=lambda_smooth)
+    losses = world_model.loss(batch, aux_loss=aux_loss)
     total = losses["total"]
-    enc = world_model.encoder
-    aux = enc.aux_loss()
-    if "loss_fm" in aux:
-        total = total + lambda_fm * aux["loss_fm"]
-    if "loss_smooth" in aux:
-        total = total + lambda_smooth * aux["loss_smooth"]
     params = [p for g in optimizer.param_groups for p in g["params"]]
     gn = optimizer_step(total, optimizer, params, grad_clip, stats)
-    enc.clear_cache()
     out = {k: float(v.detach()) for k, v in losses.items()}
-    out.update({k: float(v.detach()) for k, v in aux.items()})
-    out["total"] = float(total.detach())
     out["grad_norm"] = float(gn)
     out["skipped"] = float(not torch.isfinite(gn))
     return out
@@ -331,9 +331,10 @@ class HealthTrainer:
 
     def _train_world_model(self, steps: int) -> dict[str, float]:
         wc = self.cfg.world_model
-        hist = [train_world_model_step(self.agent.world_model, self._sample(), self.wm_opt, lambda_fm=wc.lambda_fm,
-                                       lambda_smooth=wc.lambda_smooth, grad_clip=wc.grad_clip, stats=self.wm_stats)
-                for _ in range(steps)]  # fmt: skip
+        wm = self.agent.world_model
+        aux = wm.encoder.make_aux_loss(lambda_fm=wc.lambda_fm, lambda_smooth=wc.lambda_smooth)
+        hist = [train_world_model_step(wm, self._sample(), self.wm_opt, grad_clip=wc.grad_clip, stats=self.wm_stats,
+                                       aux_loss=aux) for _ in range(steps)]  # fmt: skip
         return _mean_rows(hist, "wm_")
 
     def _train_policy(self) -> dict[str, float]:

@@ -2,7 +2,8 @@
 
 :class:`StepEncoder` is the interface every observation encoder of :class:`~freamer_rl.world_model.rssm.WorldModel`
 offers to online users -- :class:`~freamer_rl.health.agent.HealthPolicy`, the anomaly recorder and
-:class:`~freamer_rl.world_model.anomaly.KLAnomalyTransform` -- and to world-model training (auxiliary losses).
+:class:`~freamer_rl.world_model.anomaly.KLAnomalyTransform` -- and to world-model training (auxiliary losses: a
+``LossModule`` run on the tensordict the encoder wrote, no hidden cache).
 Stateless encoders get it from :class:`StatelessStepMixin`; the health encoders implement it
 (:data:`freamer_rl.health.encoders.HealthEncoder` is this protocol), the recurrent foundation encoder with its DNC
 memory as the state.
@@ -11,10 +12,13 @@ memory as the state.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import torch
 from tensordict.utils import NestedKey
+
+if TYPE_CHECKING:
+    from torchrl.objectives import LossModule
 
 __all__ = ["StepEncoder", "StatelessStepMixin"]
 
@@ -49,12 +53,10 @@ class StepEncoder(Protocol):
         """One online step: ``obs {key: [*B, d]}``, ``state``, ``is_first [*B]`` -> ``(embed [*B, E], new_state)``."""
         ...
 
-    def aux_loss(self) -> dict[str, torch.Tensor]:
-        """Auxiliary losses of the last forward pass with gradients (e.g. ``loss_fm``, ``loss_smooth``) or ``{}``."""
-        ...
-
-    def clear_cache(self) -> None:
-        """Drop whatever :meth:`aux_loss` kept from the last forward pass."""
+    def make_aux_loss(self, *, lambda_fm: float = 0.1, lambda_smooth: float = 1e-3) -> LossModule | None:
+        """The encoder's auxiliary loss as a TorchRL ``LossModule`` reading the tensordict the encoder wrote (e.g.
+        :class:`~freamer_rl.losses.FreamerAuxLoss`: weighted ``loss_fm``, ``loss_smooth``), or ``None``. Give it to
+        :meth:`WorldModel.loss(batch, aux_loss=...) <freamer_rl.world_model.rssm.WorldModel.loss>`."""
         ...
 
 
@@ -76,12 +78,9 @@ class StatelessStepMixin:
         """One online step: ``forward(obs)``, no state (``state`` and ``is_first`` are ignored)."""
         return self(obs), {}
 
-    def aux_loss(self) -> dict[str, torch.Tensor]:
-        """Auxiliary losses of the last forward pass (none for this encoder)."""
-        return {}
-
-    def clear_cache(self) -> None:
-        """Nothing kept (no auxiliary losses)."""
+    def make_aux_loss(self, *, lambda_fm: float = 0.1, lambda_smooth: float = 1e-3) -> LossModule | None:
+        """No auxiliary losses: ``None``."""
+        return None
 
     @property
     def gates(self) -> dict[str, float]:

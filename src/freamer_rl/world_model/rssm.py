@@ -40,6 +40,8 @@ from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.modules import set_recurrent_mode
+from torchrl.objectives import LossModule
 
 from freamer_rl.world_model.functional import (  # noqa: F401  (re-exported: the public names stay importable here)
     _check_last_dim, _flat, action_to_onehot, free_nats_kl, gaussian_kl, mlp, symexp, symlog,
@@ -238,9 +240,9 @@ class WorldModel(nn.Module):
         action_dim: number of discrete actions (integer actions are one-hot encoded) or the size of a float action.
         encoder: any module mapping the observations to ``[*B, embed_dim]``. A plain ``nn.Module`` is called with a
             ``dict`` ``{key: [*B, T, d]}``; a ``TensorDictModuleBase`` is called with a TensorDict holding the
-            observation keys (plus ``"is_init"`` ``[*B, T, 1]`` in :meth:`loss`, True at the first step of each
-            sequence) and its first out_key is read. Default :class:`MLPObsEncoder`. A stateful encoder (e.g. one
-            with a DNC) must handle ``[*B, T]`` inputs itself (``set_recurrent_mode``) in :meth:`loss`.
+            observation keys (plus ``"is_init"`` ``[*B, T, 1]``, True at the first step of each sequence) under
+            ``torchrl.modules.set_recurrent_mode(True)`` (time = last batch dim; a single sequence ``[T]`` is run as
+            ``[1, T]``) and its first out_key is read. Default :class:`MLPObsEncoder`.
         rssm: default ``RSSM(embed_dim, action_dim, deter_dim, stoch_dim, hidden, min_std)``.
         decoder: latent ``[*B, D + S]`` -> ``{key: [*B, d_key]}``; default :class:`MLPObsDecoder`.
         reward_head, continue_head: latent -> ``[*B, 1]`` (reward; continuation Bernoulli logit).
@@ -340,15 +342,26 @@ class WorldModel(nn.Module):
         return action_to_onehot(action, self.action_dim, batch_ndim)
 
     def embed(self, obs: Mapping[NestedKey, torch.Tensor] | TensorDictBase) -> torch.Tensor:
-        """Encode observations ``{key: [*B, d]}`` -> ``[*B, E]`` with the pluggable encoder."""
+        """Encode observation sequences ``{key: [*B, T, d]}`` -> ``[*B, T, E]`` with the pluggable encoder (a
+        TensorDict encoder gets a TensorDict, see :meth:`encode`)."""
         if isinstance(self.encoder, TensorDictModuleBase):
             if not isinstance(obs, TensorDictBase):
                 raise TypeError("a TensorDictModule encoder needs a TensorDict of observations")
-            out = self.encoder(obs.copy())
-            return out.get(self.encoder.out_keys[0])
+            return self.encode(obs).get(self.encoder.out_keys[0])
         if isinstance(obs, TensorDictBase):
             obs = {k: obs.get(k) for k in self.obs_dims}
         return self.encoder(obs)
+
+    def encode(self, obs: TensorDictBase) -> TensorDictBase:
+        """Run a TensorDict encoder on a ``[*B, T]`` sequence tensordict (observations, ``"is_init" [*B, T, 1]``)
+        under ``set_recurrent_mode(True)``; a 1-D ``[T]`` one runs as ``[1, T]``. Returns what the encoder wrote
+        (a shallow copy of ``obs``: the caller's tensordict is left as it was), e.g. ``out_keys[0] [*B, T, E]``
+        and the intermediate keys an auxiliary loss reads."""
+        single = obs.batch_dims == 1
+        td = obs.unsqueeze(0) if single else obs.copy()
+        with set_recurrent_mode(True):
+            td = self.encoder(td)
+        return td.squeeze(0) if single else td
 
     def kl(self, out: Mapping[str, torch.Tensor]) -> torch.Tensor:
         """Per-step ``KL(q || p)`` summed over latent dims (``[*B, T]``), optionally balanced (see ``kl_balance``)."""
@@ -397,13 +410,17 @@ class WorldModel(nn.Module):
         return {"obs": obs, "actions": actions, "is_first": is_first, "reward": reward, "cont": cont}
 
     def observe(self, batch: TensorDictBase, sample: bool = True) -> tuple[dict[str, torch.Tensor], dict]:
-        """Encode and filter a ``[*B, T]`` slice. Returns (RSSM outputs ``[*B, T+1, *]``, :meth:`sequence`)."""
+        """Encode and filter a ``[*B, T]`` slice. Returns (RSSM outputs ``[*B, T+1, *]``, :meth:`sequence`); with a
+        TensorDict encoder the sequence dict also holds ``"encoded"``, the tensordict ``[*B, T+1]`` it wrote."""
         seq = self.sequence(batch)
         obs = seq["obs"]
         if isinstance(self.encoder, TensorDictModuleBase):
             # a TensorDict encoder (e.g. a recurrent one) also sees where the sequence starts: "is_init" [*B, T+1, 1]
             obs = TensorDict({**obs, "is_init": seq["is_first"].unsqueeze(-1)}, batch_size=seq["is_first"].shape)
-        embeds = self.embed(obs)
+            seq["encoded"] = self.encode(obs)
+            embeds = seq["encoded"].get(self.encoder.out_keys[0])
+        else:
+            embeds = self.embed(obs)
         out = self.rssm.observe(embeds, seq["actions"], seq["is_first"], sample=sample)
         return out, seq
 
@@ -458,7 +475,7 @@ class WorldModel(nn.Module):
 
     # -- loss -----------------------------------------------------------------------------------------------------
     def loss(
-        self, batch: TensorDictBase, return_latents: bool = False
+        self, batch: TensorDictBase, return_latents: bool = False, *, aux_loss: LossModule | None = None
     ) -> dict[str, torch.Tensor] | tuple[dict[str, torch.Tensor], TensorDict]:
         """Eq. A27 on a ``[*B, T]`` TorchRL slice (time = last batch dim).
 
@@ -469,8 +486,12 @@ class WorldModel(nn.Module):
         * ``loss_kl``: ``mean(max(KL_t(q || p), free_nats))`` over ``[*B, T+1]`` (unweighted; ``total`` uses beta).
         * ``loss_rew``: MSE of the reward head at ``s_{t+1}`` vs ``("next", "reward")[t]``.
         * ``loss_con``: BCE of the continuation logit at ``s_{t+1}`` vs ``1 - ("next", "terminated")[t]``.
-        * ``total`` = rec + beta kl + reward_scale rew + continue_scale con.
+        * ``total`` = rec + beta kl + reward_scale rew + continue_scale con (+ the ``loss_*`` of ``aux_loss``).
         Diagnostics (detached): ``kl`` (unclamped mean), ``mse_<key>`` (raw units).
+
+        ``aux_loss`` (e.g. the encoder's ``make_aux_loss()``, a :class:`~freamer_rl.losses.FreamerAuxLoss`) is run
+        on the tensordict the TensorDict encoder wrote for this slice (``[*B, T+1]``, :meth:`observe`'s
+        ``"encoded"``); all its entries join the returned dict and its ``loss_*`` terms are added to ``total``.
 
         With ``return_latents=True`` also returns the detached posterior latents ``TensorDict(deter=[N, D],
         stoch=[N, S])`` flattened over ``[*B, T+1]``: imagination seeds for
@@ -495,6 +516,10 @@ class WorldModel(nn.Module):
         loss_rew = F.mse_loss(self.reward_head(nxt).squeeze(-1), seq["reward"])
         loss_con = F.binary_cross_entropy_with_logits(self.continue_head(nxt).squeeze(-1), seq["cont"])
         total = loss_rec + self.beta * loss_kl + self.reward_scale * loss_rew + self.continue_scale * loss_con
+        aux = self._aux_terms(aux_loss, seq)
+        for k, v in aux.items():
+            if k.startswith("loss_"):
+                total = total + v
         losses = {
             "loss_rec": loss_rec,
             "loss_kl": loss_kl,
@@ -503,6 +528,7 @@ class WorldModel(nn.Module):
             "total": total,
             "kl": kl_t.detach().mean(),
             **metrics,
+            **aux,
         }
         if not return_latents:
             return losses
@@ -514,6 +540,17 @@ class WorldModel(nn.Module):
             batch_size=[out["h"][..., 0].numel()],
         )
         return losses, latents
+
+    def _aux_terms(self, aux_loss: LossModule | None, seq: Mapping) -> dict[str, torch.Tensor]:
+        """``aux_loss`` on the encoder's tensordict -> ``{name: scalar}`` (``{}`` without a loss)."""
+        if aux_loss is None:
+            return {}
+        if "encoded" not in seq:
+            raise TypeError(
+                f"aux_loss: the encoder {type(self.encoder).__name__} is not a TensorDict module, so there is no "
+                "tensordict for the auxiliary loss to read (its make_aux_loss() gives None)"
+            )
+        return dict(aux_loss(seq["encoded"]).items())
 
     @torch.no_grad()
     def episode_kl(self, episode: TensorDictBase) -> torch.Tensor:
