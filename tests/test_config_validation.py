@@ -1,5 +1,6 @@
 """Every config value is validated: one ConfigError line naming the dotted field, the value and the allowed range."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -211,3 +212,28 @@ def test_cli_bad_device_is_one_error_line(tmp_path, capsys, monkeypatch, device,
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2
     assert len(err) == 1 and err[0].startswith("error: run.device") and fragment in err[0]
+
+
+HEALTH_BAD = [
+    ("world_model.lr=.nan", "world_model.lr"),
+    ("world_model.lr=0", "world_model.lr"),
+    ("imagination.gamma=5", "imagination.gamma"),
+    ("imagination.lmbda=-0.1", "imagination.lmbda"),
+    ("encoder.heads=3", "encoder.dim"),
+    ("encoder.fm_steps=0", "encoder.fm_steps"),
+    ("encoder.memory_slots=0", "encoder.memory_slots"),
+    ("collect.iterations=-1", "collect.iterations"),
+    ("collect.random_action_prob=1.5", "collect.random_action_prob"),
+    ("env.rate_hz=0", "env.rate_hz"),
+    ("world_model.kl_balance=2", "world_model.kl_balance"),
+    ("eval.seed=-1", "eval.seed"),
+    ("encoder.gate_init.imu=.inf", "encoder.gate_init.imu"),
+]
+
+
+@pytest.mark.parametrize("override, field", HEALTH_BAD, ids=[o for o, _ in HEALTH_BAD])
+def test_health_values_are_range_checked(override, field):
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "health" / "health_foundation.yaml"
+    with pytest.raises(ConfigError, match=re.escape(field)) as err:
+        load_config(recipe, [override])
+    assert "\n" not in str(err.value)

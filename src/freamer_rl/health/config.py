@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from freamer_rl.config import VALIDATORS, ConfigError, config_from_dict, load_config
+from freamer_rl.config_checks import check_numbers
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
 from freamer_rl.rundir import run_name_problem
 
@@ -177,6 +178,29 @@ class HealthConfig:
     run: HealthRunConfig = field(default_factory=HealthRunConfig)
 
 
+def _in(lo: float, hi: float, lo_open: bool = False):
+    return lambda v: (lo < v if lo_open else lo <= v) and v <= hi
+
+
+_POS, _NONNEG = (lambda v: v > 0, "> 0"), (lambda v: v >= 0, ">= 0")
+#: Number ranges of the health schema for :func:`freamer_rl.config_checks.check_numbers` (elsewhere ints must be
+#: >= 1 and floats finite).
+HEALTH_RANGES = {
+    **{k: _NONNEG for k in ("env.data_seed", "eval.seed", "run.seed", "collect.iterations", "collect.prefill_frames",
+                            "world_model.train_steps", "world_model.prefill_train_steps", "imagination.updates",
+                            "eval.every", "encoder.fm_noise_std", "world_model.beta", "world_model.free_nats",
+                            "world_model.reward_scale", "world_model.lambda_fm", "world_model.lambda_smooth",
+                            "imagination.entropy_coeff", "imagination.critic_coeff")},
+    **{k: _POS for k in ("env.rate_hz", "env.synthetic_duration_s", "world_model.lr", "world_model.adam_eps",
+                         "world_model.grad_clip", "imagination.lr", "imagination.adam_eps", "imagination.clip_epsilon",
+                         "imagination.max_grad_norm", "eval.horizon_reward_tol")},
+    "world_model.kl_balance": (_in(0, 1), "in [0, 1]"),
+    "imagination.gamma": (_in(0, 1, lo_open=True), "in (0, 1]"),
+    "imagination.lmbda": (_in(0, 1), "in [0, 1]"),
+    "collect.random_action_prob": (_in(0, 1), "in [0, 1]"),
+}
+
+
 def validate_health_config(cfg: HealthConfig) -> None:
     """Cross-field checks (types and unknown keys are checked while building)."""
     if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
@@ -194,32 +218,10 @@ def validate_health_config(cfg: HealthConfig) -> None:
     if len(cfg.env.reward_weights) != 3:
         raise ConfigError(f"env.reward_weights: expected 3 numbers (w_safe, w_target, w_fatigue), got "
                           f"{cfg.env.reward_weights!r}")  # fmt: skip
-    positive = {
-        "env.num_envs": cfg.env.num_envs, "env.episode_length": cfg.env.episode_length, "env.rate_hz": cfg.env.rate_hz,
-        "encoder.embed_dim": cfg.encoder.embed_dim, "encoder.hidden": cfg.encoder.hidden,
-        "encoder.dim": cfg.encoder.dim,
-        "world_model.deter_dim": cfg.world_model.deter_dim, "world_model.stoch_dim": cfg.world_model.stoch_dim,
-        "world_model.hidden": cfg.world_model.hidden, "world_model.lr": cfg.world_model.lr,
-        "world_model.batch_size": cfg.world_model.batch_size, "world_model.seq_len": cfg.world_model.seq_len,
-        "imagination.horizon": cfg.imagination.horizon, "imagination.lr": cfg.imagination.lr,
-        "imagination.num_seeds": cfg.imagination.num_seeds, "imagination.epochs": cfg.imagination.epochs,
-        "imagination.num_minibatches": cfg.imagination.num_minibatches,
-        "collect.frames_per_iter": cfg.collect.frames_per_iter, "collect.buffer_capacity": cfg.collect.buffer_capacity,
-        "eval.num_envs": cfg.eval.num_envs, "eval.horizon_max": cfg.eval.horizon_max,
-        "eval.horizon_context": cfg.eval.horizon_context, "eval.mse_windows": cfg.eval.mse_windows,
-        "eval.horizon_windows": cfg.eval.horizon_windows, "run.threads": cfg.run.threads,
-    }  # fmt: skip
-    for name, value in positive.items():
-        if value <= 0:
-            raise ConfigError(f"{name}: must be positive, got {value}")
-    non_negative = {
-        "collect.iterations": cfg.collect.iterations, "collect.prefill_frames": cfg.collect.prefill_frames,
-        "world_model.train_steps": cfg.world_model.train_steps, "imagination.updates": cfg.imagination.updates,
-        "world_model.prefill_train_steps": cfg.world_model.prefill_train_steps, "eval.every": cfg.eval.every,
-    }  # fmt: skip
-    for name, value in non_negative.items():
-        if value < 0:
-            raise ConfigError(f"{name}: must be >= 0, got {value}")
+    check_numbers(cfg, HEALTH_RANGES)
+    if cfg.encoder.kind in ("slotattn", "foundation") and cfg.encoder.dim % cfg.encoder.heads:
+        raise ConfigError(f"encoder.dim: got {cfg.encoder.dim}, must be divisible by encoder.heads "
+                          f"({cfg.encoder.heads})")  # fmt: skip
     n = cfg.env.num_envs
     for name, frames in (("collect.frames_per_iter", cfg.collect.frames_per_iter),
                          ("collect.prefill_frames", cfg.collect.prefill_frames)):  # fmt: skip
