@@ -30,15 +30,11 @@ import functools
 import json
 import logging
 import math
-import os
-import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from tensordict import TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, StepCounter, TransformedEnv
@@ -47,10 +43,17 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from freamer_rl import env_registry
-from freamer_rl.config import FreamerConfig, config_to_dict
+# Format, reader (weights_only) and the one atomic, rotating writer live in freamer_rl.checkpoint, shared with the
+# health trainer; re-exported here because callers (evaluate, the CLI, user scripts) import them from train.
+from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT
+from freamer_rl.checkpoint import (  # noqa: F401
+    atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
+    load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint,
+)
+from freamer_rl.config import ConfigError, FreamerConfig, config_to_dict
 from freamer_rl.config_checks import resolve_device
 from freamer_rl.layers.checks import set_value_checks
-from freamer_rl.errors import CheckpointError, FreamerError
+from freamer_rl.errors import CheckpointError
 from freamer_rl.factory import FreamerModules, build_freamer
 from freamer_rl.losses import FreamerAuxLoss
 # re-exported: callers import EpisodeStats, plot_learning_curve and SUCCESS_TARGET from train
@@ -59,6 +62,8 @@ from freamer_rl.metrics import (  # noqa: F401
     quiet_library_logs,
 )
 from freamer_rl.optim import StepStats, optimizer_step
+from freamer_rl.runfiles import git_commit, make_metrics_logger, write_run_files  # noqa: F401 (git_commit re-exported)
+from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm, run_name_problem, write_rows_csv
 from freamer_rl.sequences import sequence_replay_buffer, split_sequences
 
 logger = logging.getLogger(__name__)
@@ -112,23 +117,6 @@ def build_modules(cfg: FreamerConfig) -> FreamerModules:
 # --------------------------------------------------------------------------------------------------------------
 
 
-def git_commit() -> dict[str, Any]:
-    here = Path(__file__).resolve().parent
-    try:
-        sha = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5, check=True
-        ).stdout.strip()
-        dirty = bool(
-            subprocess.run(
-                ["git", "status", "--porcelain"], cwd=here, capture_output=True, text=True, timeout=5
-            ).stdout.strip()
-        )
-        return {"commit": sha, "dirty": dirty}
-    except (OSError, subprocess.SubprocessError) as err:
-        logger.warning("could not read the git commit (%s); run_info.json records none", err)
-        return {"commit": None, "dirty": None}
-
-
 def default_run_name(cfg: FreamerConfig) -> str:
     # env ids may hold a namespace ("ALE/Pong-v5"): keep the name one folder under run.output_dir
     env_short = cfg.env.id.replace("MiniGrid-", "").replace("-v0", "")
@@ -140,17 +128,6 @@ def default_run_name(cfg: FreamerConfig) -> str:
 # Checkpoints
 # --------------------------------------------------------------------------------------------------------------
 
-# Format, reader (weights_only) and the one atomic, rotating writer live in freamer_rl.checkpoint, shared with the
-# health pipeline; re-exported here because callers (evaluate, the CLI, user scripts) import them from train.
-from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT  # noqa: E402
-from freamer_rl.checkpoint import (  # noqa: E402, F401
-    atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
-    load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint,
-)
-from freamer_rl.config import ConfigError  # noqa: E402
-from freamer_rl.rundir import (  # noqa: E402
-    RunDirLock, Terminated, catch_sigterm, next_attempt_name, restore_sigterm, run_name_problem, write_rows_csv,
-)
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -233,20 +210,7 @@ class Trainer:
         self._write_run_files()
 
     def _write_run_files(self) -> None:
-        atomic_write_text(self.run_dir / "config.yaml", yaml.safe_dump(config_to_dict(self.cfg), sort_keys=False))
-        import tensordict
-        import torchrl
-
-        info = {
-            **git_commit(),
-            "command": sys.argv,
-            "torch": torch.__version__,
-            "torchrl": torchrl.__version__,
-            "tensordict": tensordict.__version__,
-            "resumed_from": str(self.resumed_from) if self.resumed_from else None,
-            "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-        }
-        atomic_write_text(self.run_dir / "run_info.json", json.dumps(info, indent=2))
+        write_run_files(self.run_dir, config_to_dict(self.cfg), self.resumed_from)
 
     def _resume(self, path: Path) -> None:
         ckpt = load_checkpoint(path)
@@ -294,24 +258,8 @@ class Trainer:
         return path
 
     def _make_logger(self):
-        from torchrl.record.loggers import get_logger
-
-        backend = self.cfg.logging.backend
-        kwargs: dict[str, Any] = {}
-        if backend == "wandb":
-            kwargs["wandb_kwargs"] = {"offline": os.environ.get("WANDB_MODE", "offline") == "offline",
-                                      "project": "freamer_rl", "dir": str(self.run_dir)}
-        try:
-            # one folder per attempt (metrics/attempt_NN): an attempt killed after its last checkpoint logged steps
-            # that the resumed attempt logs again; progress.csv is the deduplicated record
-            attempt = next_attempt_name(self.run_dir / "metrics")
-            logger.info("metrics of this attempt (from %d frames): %s", self.frames, self.run_dir / "metrics" / attempt)
-            return get_logger(backend, logger_name=str(self.run_dir / "metrics"), experiment_name=attempt, **kwargs)
-        except ImportError as err:
-            extra = {"wandb": "wandb", "tensorboard": "tensorboard"}.get(backend, backend)
-            raise FreamerError(
-                f"logging.backend '{backend}' needs an optional package: pip install 'freamer_rl[{extra}]' ({err})"
-            ) from err
+        return make_metrics_logger(self.run_dir, self.cfg.logging.backend, config_to_dict(self.cfg),
+                                   option="logging.backend")
 
     # -- data -----------------------------------------------------------------------------------------------
     def _make_collector(self, remaining: int) -> Collector:

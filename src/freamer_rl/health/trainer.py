@@ -36,14 +36,12 @@ import json
 import logging
 import math
 import os
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-import yaml
 from tensordict import TensorDict, TensorDictBase
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler
@@ -52,12 +50,13 @@ from torchrl.objectives import LossModule
 from freamer_rl.checkpoint import atomic_write_text, latest_checkpoint, read_checkpoint, resume_checkpoint
 from freamer_rl.checkpoint import save_checkpoint
 from freamer_rl.config import ConfigError
-from freamer_rl.errors import CheckpointError, FreamerError
+from freamer_rl.errors import CheckpointError
 from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, save_agent
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
 from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, evaluate_agent
 from freamer_rl.optim import StepStats, optimizer_step
-from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, next_attempt_name, restore_sigterm
+from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
+from freamer_rl.runfiles import make_metrics_logger, write_run_files
 from freamer_rl.rundir import run_name_problem, write_rows_csv
 from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv
 from freamer_rl.world_model.metrics import seed_latents
@@ -276,38 +275,12 @@ class HealthTrainer:
         return f"health, {self.cfg.encoder.kind} encoder, seed {self.cfg.run.seed}"
 
     def _write_run_files(self) -> None:
-        import tensordict
-        import torchrl
-
-        from freamer_rl.train import git_commit
-
-        cfg_text = yaml.safe_dump(health_config_to_dict(self.cfg), sort_keys=False)
-        atomic_write_text(self.run_dir / "config.yaml", cfg_text)
-        info = {
-            **git_commit(), "command": sys.argv, "torch": torch.__version__, "torchrl": torchrl.__version__,
-            "tensordict": tensordict.__version__, "started": time.strftime("%Y-%m-%dT%H:%M:%S"),
-            "resumed_from": str(self.resumed_from) if self.resumed_from else None,
-        }  # fmt: skip
-        atomic_write_text(self.run_dir / "run_info.json", json.dumps(info, indent=2))
+        write_run_files(self.run_dir, health_config_to_dict(self.cfg), self.resumed_from)
 
     def _make_logger(self):
         """The TorchRL logger of this attempt (``metrics/attempt_NN``) with the resolved config as hyperparameters."""
-        from torchrl.record.loggers import get_logger
-
-        backend = self.cfg.run.logger
-        kwargs: dict[str, Any] = {}
-        if backend == "wandb":
-            kwargs["wandb_kwargs"] = {"offline": os.environ.get("WANDB_MODE", "offline") == "offline",
-                                      "project": "freamer_rl", "dir": str(self.run_dir)}  # fmt: skip
-        attempt = next_attempt_name(self.run_dir / "metrics")
-        try:
-            metrics = get_logger(backend, logger_name=str(self.run_dir / "metrics"), experiment_name=attempt, **kwargs)
-        except ImportError as err:
-            raise FreamerError(f"run.logger '{backend}' needs an optional package: pip install "
-                               f"'freamer_rl[{backend}]' ({err})") from err  # fmt: skip
-        hparams = {k: v for k, v in _flatten(health_config_to_dict(self.cfg)).items() if v is not None}
-        metrics.log_hparams(hparams)
-        return metrics
+        return make_metrics_logger(self.run_dir, self.cfg.run.logger, health_config_to_dict(self.cfg),
+                                   option="run.logger")
 
     def _log_row(self, metrics, row: dict[str, Any]) -> None:
         write_rows_csv(self.run_dir / "progress.csv", self.rows)
@@ -460,18 +433,6 @@ class HealthTrainer:
             "resumed_from": str(self.resumed_from) if self.resumed_from else None,
             "run_dir": str(self.run_dir),
         }
-
-
-def _flatten(d: dict, prefix: str = "") -> dict[str, Any]:
-    """``{"a": {"b": 1}} -> {"a.b": 1}``; lists become strings (loggers take scalars and strings)."""
-    out: dict[str, Any] = {}
-    for k, v in d.items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flatten(v, key + "."))
-        else:
-            out[key] = str(v) if isinstance(v, (list, tuple)) else v
-    return out
 
 
 def run_health(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
