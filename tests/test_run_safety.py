@@ -417,3 +417,30 @@ def test_kill_9_then_same_command_resumes(tmp_path):
     assert frames == list(range(128, total + 1, 128))
     assert load_checkpoint(latest_checkpoint(run))["frames"] == total
     assert (run / "metrics" / "attempt_02").is_dir()
+
+
+@pytest.mark.slow  # two real CLI processes
+def test_kill_9_then_same_command_resumes_the_health_trainer(tmp_path):
+    """The health trainer checkpoints after every iteration: kill -9 mid-run, rerun the same command, it continues."""
+    from test_health_pipeline import TINY as HEALTH_TINY
+
+    run = tmp_path / "run"
+    recipe = Path(__file__).resolve().parents[1] / "recipes" / "health" / "health_mlp.yaml"
+    cmd = [sys.executable, "-m", "freamer_rl.cli", "train", str(recipe), *HEALTH_TINY, "collect.iterations=6",
+           "--run-dir", str(run)]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
+    try:
+        deadline = time.monotonic() + 120
+        while len(list_checkpoints(run / "checkpoints")) < 2:  # prefill and at least one iteration saved
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() < deadline, "no second checkpoint within 120 s"
+            time.sleep(0.05)
+        time.sleep(random.uniform(0.0, 0.5))
+    finally:
+        proc.kill()
+        proc.wait()
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=ENV)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert "resumed from" in done.stderr
+    iterations = [line.split(",")[0] for line in (run / "progress.csv").read_text().splitlines()[1:]]
+    assert iterations == [str(i) for i in range(7)], iterations  # prefill row 0, then 1..6, none repeated
