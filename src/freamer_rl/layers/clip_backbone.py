@@ -195,25 +195,9 @@ class ClipBackbone(nn.Module):
             quick_gelu = bool(tag_cfg.get("quick_gelu", False))
 
         # 1) Resolve the weights file before building anything (fail fast, one line).
-        weights_file: Path | None = None
-        if checkpoint_path is not None:
-            weights_file = Path(checkpoint_path).expanduser()
-            if not weights_file.is_file():
-                raise ClipWeightsError(f"CLIP checkpoint_path {str(weights_file)!r} does not exist or is not a file")
-            self.weights_source = f"checkpoint {weights_file}"
-        elif pretrained:
-            weights_file = self._download(open_clip, model_name, pretrained, tag_cfg, cache_dir)
-            self.weights_source = f"open_clip {model_name}/{pretrained} ({weights_file})"
-        elif allow_random_weights:
-            self.weights_source = "random (allow_random_weights=True)"
-            logger.warning(
-                "ClipBackbone %s uses RANDOM weights (allow_random_weights=True): for tests/benchmarks only", model_name
-            )
-        else:
-            raise ClipWeightsError(
-                f"no CLIP weights for {model_name}: pass pretrained=<open_clip tag, e.g. 'openai'> or "
-                f"checkpoint_path=<local file>; random weights need allow_random_weights=True"
-            )
+        weights_file = self._resolve_weights(
+            open_clip, model_name, pretrained, checkpoint_path, tag_cfg, cache_dir, allow_random_weights
+        )
 
         # Read the checkpoint before building the architecture, so an unreadable file fails fast.
         state = self._read_state(open_clip, weights_file) if weights_file is not None else None
@@ -258,6 +242,32 @@ class ClipBackbone(nn.Module):
         )
 
     # ------------------------------------------------------------------ weights
+    def _resolve_weights(
+        self, open_clip, model_name: str, pretrained: str | None, checkpoint_path: str | None, tag_cfg: dict,
+        cache_dir: str | None, allow_random_weights: bool,
+    ) -> Path | None:
+        """The weights file to load (None: random weights, only when allowed); sets ``self.weights_source``."""
+        weights_file: Path | None = None
+        if checkpoint_path is not None:
+            weights_file = Path(checkpoint_path).expanduser()
+            if not weights_file.is_file():
+                raise ClipWeightsError(f"CLIP checkpoint_path {str(weights_file)!r} does not exist or is not a file")
+            self.weights_source = f"checkpoint {weights_file}"
+        elif pretrained:
+            weights_file = self._download(open_clip, model_name, pretrained, tag_cfg, cache_dir)
+            self.weights_source = f"open_clip {model_name}/{pretrained} ({weights_file})"
+        elif allow_random_weights:
+            self.weights_source = "random (allow_random_weights=True)"
+            logger.warning(
+                "ClipBackbone %s uses RANDOM weights (allow_random_weights=True): for tests/benchmarks only", model_name
+            )
+        else:
+            raise ClipWeightsError(
+                f"no CLIP weights for {model_name}: pass pretrained=<open_clip tag, e.g. 'openai'> or "
+                f"checkpoint_path=<local file>; random weights need allow_random_weights=True"
+            )
+        return weights_file
+
     @staticmethod
     def _config_image_size(open_clip, model_name: str) -> int:
         cfg = open_clip.get_model_config(model_name) or {}
