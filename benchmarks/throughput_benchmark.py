@@ -1,0 +1,426 @@
+"""Throughput of FreamerV1's N2-S4 recipe (this checkout and an older commit) and the TorchRL PPO-MLP, in one run.
+
+    python benchmarks/throughput_benchmark.py        # 3 rounds x 4 batches, 1 and 2 threads, 8/16/32 envs, vs 411f9a7
+    python benchmarks/throughput_benchmark.py --rounds 2 --batches 3 --threads 1 2 --num-envs 16 32 --out /tmp/tp
+    python benchmarks/throughput_benchmark.py --skip-old --rounds 1 --threads 1 --num-envs 16   # no older commit
+
+Every measurement is one subprocess with ``torch.set_num_threads(t)``, run one at a time and interleaved round by
+round: for each round, for each (threads, env.num_envs) configuration, the current code, then the older commit
+(``--old-commit``, default 411f9a7, extracted with ``git archive`` into a temporary folder and imported through
+``PYTHONPATH=<tree>/src:<tree>``), then the baseline. So all three see the same machine load, and the ratios are
+taken round by round between measurements a few seconds apart.
+
+What is timed, per batch of ``ppo.frames_per_batch`` frames (one warm-up batch first, then ``--batches`` K):
+
+* FreamerV1: ``Trainer(cfg, tmp_dir, resume=False)`` with the recipe + ``run.threads``, ``env.num_envs`` (+ any
+  positional overrides); collection = the time ``next()`` on ``trainer._make_collector(...)``'s iterator takes to
+  return the batch; update = ``trainer._compute_advantage`` (the step-mode value pass on root and next states, then
+  GAE) + ``trainer._update`` (the PPO epochs). ``collector.update_policy_weights_()`` and the episode statistics are
+  outside both. For commits whose adapters are the top-level package ``envs`` (before they were installed as
+  ``freamer_rl_envs``), ``env_registry.get_env_factory`` is patched to return that tree's ``envs.minigrid`` factory.
+* PPO-MLP: ``ppo_mlp_baseline.train_ppo_mlp`` itself (unchanged), run for (1 + K) batches with its GAE class
+  swapped for a subclass that notes the time it is called and a ``progress`` callback that notes the end of each
+  batch; collection = end of the previous batch until GAE starts (includes the baseline's per-episode bookkeeping
+  loop), update = GAE start until the end of the batch (GAE with its value network, buffer fill, the PPO epochs,
+  ``update_policy_weights_``). Its own ``torch.set_num_threads(1)`` is overridden so it runs with ``t`` threads.
+  It always uses one env (that is the baseline), so ``env.num_envs`` does not change it; it is rerun for every
+  configuration only so that every row has a same-load baseline.
+
+fps = frames / time; overall = frames / (collection + update). Per round, a method's fps is over its K batches
+together; the tables give the mean and min-max over rounds, and the ratios are the mean (min-max) of the per-round
+ratios. Writes ``results.md``, ``results.csv`` (one row per configuration and method) and ``rounds.csv`` (every
+round) into ``--out`` (default benchmarks/results/throughput/).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import platform
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_RECIPE = ROOT / "recipes" / "minigrid_multiroom_n2s4.yaml"
+RESULT_TAG = "THROUGHPUT_RESULT "
+METHODS = ("current", "old", "baseline")
+METRICS = ("collect_fps", "update_fps", "overall_fps")
+CSV_FIELDS = [
+    "threads", "num_envs", "method", "code", "rounds", "batches", "frames_per_batch",
+    *[f"{m}_{s}" for m in METRICS for s in ("mean", "min", "max")],
+    *[f"{m.removesuffix('_fps')}_vs_{o}" for o in ("old", "baseline") for m in METRICS],
+]
+ROUND_FIELDS = ["round", "threads", "num_envs", "method", "frames", "collect_s", "advantage_s", "update_s",
+                "collect_fps", "update_fps", "overall_fps", "wall_s", "num_threads", "source", "error"]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# worker side (one subprocess per measurement)
+# ---------------------------------------------------------------------------------------------------------------
+def _fps_summary(frames: int, collect: list[float], advantage: list[float], update: list[float]) -> dict:
+    c, u = sum(collect), sum(update)
+    return {
+        "frames": frames, "collect_s": c, "advantage_s": sum(advantage), "update_s": u,
+        "collect_fps": frames / c, "update_fps": frames / u, "overall_fps": frames / (c + u),
+        "per_batch": [{"collect_s": a, "update_s": b} for a, b in zip(collect, update)],
+    }
+
+
+def _patch_legacy_adapters(tree: Path) -> bool:
+    """Old trees ship the adapters as the top-level package ``envs``; the installed entry point names the current
+    ``freamer_rl_envs``, which old code cannot import. Point the registry at the tree's own MiniGrid factory."""
+    if not (tree / "envs" / "minigrid.py").is_file():
+        return False
+    import envs.minigrid  # noqa: PLC0415 (from the old tree, via PYTHONPATH)
+    from freamer_rl import env_registry
+
+    env_registry.get_env_factory = lambda adapter: envs.minigrid.make_minigrid_env
+    return True
+
+
+def _time_freamer(spec: dict) -> dict:
+    import torch
+
+    torch.set_num_threads(spec["threads"])
+    import freamer_rl
+    from freamer_rl.config import load_config
+
+    src = Path(freamer_rl.__file__).resolve()
+    tree = Path(spec["tree"]).resolve()
+    if tree not in src.parents:
+        raise RuntimeError(f"imported freamer_rl from {src}, expected it under {tree}")
+    patched = _patch_legacy_adapters(tree) if spec.get("patch_envs") else False
+    from freamer_rl.train import Trainer
+
+    k, warmup = spec["batches"], spec["warmup"]
+    cfg = load_config(spec["recipe"], spec["overrides"])
+    fpb = cfg.ppo.frames_per_batch
+    run_dir = Path(tempfile.mkdtemp(prefix="throughput_run_"))
+    try:
+        trainer = Trainer(cfg, run_dir / "run", resume=False)
+        torch.set_num_threads(spec["threads"])
+        collector = trainer._make_collector((warmup + k) * fpb)
+        it = iter(collector)
+        collect, advantage, update, frames = [], [], [], 0
+        for i in range(warmup + k):
+            t0 = time.perf_counter()
+            data = next(it)
+            t1 = time.perf_counter()
+            data = trainer._compute_advantage(data)
+            t2 = time.perf_counter()
+            trainer._update(data)
+            t3 = time.perf_counter()
+            trainer.frames += data.numel()
+            collector.update_policy_weights_()
+            if i >= warmup:
+                collect.append(t1 - t0)
+                advantage.append(t2 - t1)
+                update.append(t3 - t1)
+                frames += data.numel()
+        collector.shutdown()
+    finally:
+        shutil.rmtree(run_dir, ignore_errors=True)
+    out = _fps_summary(frames, collect, advantage, update)
+    out.update(source=str(src.parent) + (" (+ envs.minigrid patch)" if patched else ""),
+               num_threads=torch.get_num_threads())
+    return out
+
+
+def _time_baseline(spec: dict) -> dict:
+    import torch
+
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    import ppo_mlp_baseline as pb
+
+    # batch 0's collection starts inside train_ppo_mlp (not observable): it is never timed, even with --warmup 0
+    k, warmup, fpb = spec["batches"], max(spec["warmup"], 1), spec["frames_per_batch"]
+    gae_starts: list[float] = []
+    batch_ends: list[float] = []
+
+    class TimedGAE(pb.GAE):
+        def forward(self, *args, **kwargs):
+            gae_starts.append(time.perf_counter())
+            return super().forward(*args, **kwargs)
+
+    torch.set_num_threads(spec["threads"])
+    set_threads, pb.GAE = torch.set_num_threads, TimedGAE
+    torch.set_num_threads = lambda n: None  # train_ppo_mlp pins 1 thread; keep ours
+    try:
+        pb.train_ppo_mlp(spec["env_id"], spec["seed"], (warmup + k) * fpb, frames_per_batch=fpb,
+                         progress=lambda row: batch_ends.append(time.perf_counter()))
+    finally:
+        torch.set_num_threads = set_threads
+    if len(gae_starts) != warmup + k or len(batch_ends) != warmup + k:
+        raise RuntimeError(f"expected {warmup + k} batches, saw {len(gae_starts)} GAE calls / {len(batch_ends)} ends")
+    collect = [gae_starts[i] - batch_ends[i - 1] for i in range(warmup, warmup + k)]
+    update = [batch_ends[i] - gae_starts[i] for i in range(warmup, warmup + k)]
+    out = _fps_summary(fpb * len(collect), collect, [0.0] * len(collect), update)
+    out.update(source=str(Path(pb.__file__).resolve()), num_threads=torch.get_num_threads())
+    return out
+
+
+def _worker(spec: dict) -> None:
+    import logging
+
+    logging.basicConfig(level=logging.WARNING)
+    t0 = time.perf_counter()
+    result = _time_baseline(spec) if spec["method"] == "baseline" else _time_freamer(spec)
+    result["wall_s"] = time.perf_counter() - t0
+    print(RESULT_TAG + json.dumps(result), flush=True)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# driver side
+# ---------------------------------------------------------------------------------------------------------------
+def _git(*args: str) -> str:
+    return subprocess.run(["git", "-C", str(ROOT), *args], check=True, capture_output=True, text=True).stdout.strip()
+
+
+def _current_code() -> str:
+    try:
+        dirty = bool(_git("status", "--porcelain", "--untracked-files=no"))
+        return _git("rev-parse", "--short", "HEAD") + (" + uncommitted changes" if dirty else "")
+    except (subprocess.CalledProcessError, FileNotFoundError):
+        return "unknown (not a git checkout)"
+
+
+def extract_commit(commit: str, dest: Path) -> str:
+    """``git archive`` the commit's ``src`` and ``envs`` into ``dest`` (no worktree, nothing in .git changes)."""
+    sha = _git("rev-parse", "--short", f"{commit}^{{commit}}")
+    paths = [p for p in ("src", "envs") if _git("ls-tree", "--name-only", sha, p)]
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", sha, *paths], check=True,
+                             capture_output=True).stdout
+    dest.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    return sha
+
+
+def run_job(spec: dict, tree: Path | None, timeout: float) -> dict:
+    """One measurement in its own interpreter; returns the worker's result or ``{"error": ...}``."""
+    env = dict(os.environ)
+    if tree is not None:  # FreamerV1 code from this tree, ahead of the editable install (old trees: envs/ too)
+        paths = [str(tree / "src")] + ([str(tree)] if spec.get("patch_envs") else [])
+        env["PYTHONPATH"] = os.pathsep.join([*paths, env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+    env.update(OMP_NUM_THREADS=str(spec["threads"]), MKL_NUM_THREADS=str(spec["threads"]))
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
+                              capture_output=True, text=True, timeout=timeout, env=env, cwd=tempfile.gettempdir())
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s", "wall_s": time.perf_counter() - t0}
+    for line in reversed(proc.stdout.splitlines()):
+        if line.startswith(RESULT_TAG):
+            return json.loads(line[len(RESULT_TAG):])
+    tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
+    return {"error": f"exit {proc.returncode}: {tail[:300]}", "wall_s": time.perf_counter() - t0}
+
+
+def _check_config(recipe: str, overrides: list[str]):
+    """``(config, None)`` for a valid configuration, else ``(None, the ConfigError line)``."""
+    from freamer_rl.config import ConfigError, load_config
+
+    try:
+        return load_config(recipe, overrides), None
+    except ConfigError as err:
+        return None, str(err)
+
+
+def _csv_value(v):
+    return f"{v:.4g}" if isinstance(v, float) and abs(v) < 100 else f"{v:.1f}" if isinstance(v, float) else v
+
+
+def _stats(values: list[float]) -> tuple[float, float, float]:
+    return statistics.mean(values), min(values), max(values)
+
+
+def _fmt(values: list[float], nd: int = 0) -> str:
+    if not values:
+        return "n/a"
+    m, lo, hi = _stats(values)
+    return f"{m:,.{nd}f} ({lo:,.{nd}f}-{hi:,.{nd}f})" if len(values) > 1 else f"{m:,.{nd}f}"
+
+
+def summarise(rounds: list[dict], configs: list[tuple[int, int]], methods: list[str], codes: dict) -> list[dict]:
+    """One row per (threads, num_envs, method): mean/min/max over rounds, and for ``current`` the per-round ratios
+    against ``old`` and ``baseline`` (mean over rounds, plus the lists for the Markdown)."""
+    ok = [r for r in rounds if not r.get("error")]
+    rows = []
+    for t, n in configs:
+        by = {m: {r["round"]: r for r in ok if (r["threads"], r["num_envs"], r["method"]) == (t, n, m)}
+              for m in methods}
+        for m in methods:
+            rs = list(by[m].values())
+            if not rs:
+                continue
+            row = {"threads": t, "num_envs": n, "method": m, "code": codes[m], "rounds": len(rs)}
+            for metric in METRICS:
+                row[f"{metric}_mean"], row[f"{metric}_min"], row[f"{metric}_max"] = _stats([r[metric] for r in rs])
+                row[f"_{metric}"] = [r[metric] for r in rs]
+            if m == "current":
+                for other in ("old", "baseline"):
+                    for metric in METRICS:
+                        ratios = [by[m][i][metric] / by[other][i][metric] for i in by[m] if i in by.get(other, {})]
+                        key = f"{metric.removesuffix('_fps')}_vs_{other}"
+                        row[key] = statistics.mean(ratios) if ratios else None
+                        row[f"_{key}"] = ratios
+            rows.append(row)
+    return rows
+
+
+def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Path, meta: dict) -> str:
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "rounds.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=ROUND_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows({k: _csv_value(v) for k, v in r.items()} for r in rounds)
+    with (out / "results.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            r = {**r, "batches": meta["batches"], "frames_per_batch": meta["frames_per_batch"]}
+            w.writerow({k: _csv_value(v) for k, v in r.items()})
+    names = {"current": "FreamerV1 current", "old": "FreamerV1 old", "baseline": "TorchRL PPO-MLP"}
+    lines = [
+        "# Throughput: FreamerV1 N2-S4 recipe vs an older commit vs TorchRL PPO-MLP",
+        "",
+        f"Generated {meta['date']} on {meta['machine']}; load average {meta['load_start']} at the start, "
+        f"{meta['load_end']} at the end.",
+        f"Code: current = {meta['codes']['current']}, old = {meta['codes'].get('old', 'skipped')}, "
+        f"baseline = benchmarks/ppo_mlp_baseline.py (one env, MLP 256x2).",
+        f"{meta['rounds']} round(s), interleaved (each round: every configuration, current / old / baseline, each in "
+        f"its own subprocess); per measurement {meta['warmup']} warm-up batch(es) + {meta['batches']} timed batches of "
+        f"{meta['frames_per_batch']} frames. Overrides: {meta['overrides'] or 'none'}.",
+        "Cells: mean (min-max) over rounds, frames/s. Update = GAE value pass + GAE + PPO epochs "
+        "(FreamerV1: `_compute_advantage` + `_update`); overall = frames / (collection + update).",
+        "",
+        "| threads | env.num_envs | code | collection fps | update fps | overall fps |",
+        "|---:|---:|---|---:|---:|---:|",
+    ]
+    for r in rows:
+        n = "1 (own)" if r["method"] == "baseline" else r["num_envs"]
+        lines.append(f"| {r['threads']} | {n} | {names[r['method']]} | {_fmt(r['_collect_fps'])} | "
+                     f"{_fmt(r['_update_fps'])} | {_fmt(r['_overall_fps'])} |")
+    cur = [r for r in rows if r["method"] == "current"]
+    if any(r.get("_overall_vs_old") or r.get("_overall_vs_baseline") for r in cur):
+        lines += ["", "Ratios, current / other, per round then mean (min-max):", "",
+                  "| threads | env.num_envs | collection vs old | update vs old | overall vs old | "
+                  "collection vs baseline | update vs baseline | overall vs baseline |",
+                  "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        for r in cur:
+            cells = [_fmt(r.get(f"_{m.removesuffix('_fps')}_vs_{o}") or [], 2) for o in ("old", "baseline")
+                     for m in METRICS]
+            lines.append(f"| {r['threads']} | {r['num_envs']} | " + " | ".join(cells) + " |")
+    errors = [r for r in rounds if r.get("error")]
+    if notes or errors:
+        lines += ["", "Notes:", ""]
+        lines += [f"- {n}" for n in notes]
+        lines += [f"- round {r['round']}, {r['threads']} thread(s), {r['num_envs']} envs, {r['method']}: "
+                  f"{r['error']}" for r in errors]
+    lines += ["", f"Command: `{meta['command']}`"]
+    text = "\n".join(lines) + "\n"
+    (out / "results.md").write_text(text)
+    return text
+
+
+def _load() -> str:
+    try:
+        return " ".join(f"{v:.2f}" for v in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def _machine() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return f"{os.cpu_count()} CPU cores ({cpu})"
+
+
+def main(argv: list[str] | None = None) -> str:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--batches", type=int, default=4, help="timed batches per measurement (after the warm-up)")
+    ap.add_argument("--warmup", type=int, default=1, help="untimed batches first")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--num-envs", type=int, nargs="+", default=[8, 16, 32])
+    ap.add_argument("--old-commit", default="411f9a7")
+    ap.add_argument("--skip-old", action="store_true", help="measure only the current code and the baseline")
+    ap.add_argument("--skip-baseline", action="store_true")
+    ap.add_argument("--recipe", default=str(DEFAULT_RECIPE))
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--job-timeout", type=float, default=900.0, help="seconds per measurement subprocess")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "throughput"))
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("overrides", nargs="*", help="dotted overrides for the FreamerV1 recipe (both codes)")
+    args = ap.parse_intermixed_args(argv)
+    if args.worker:
+        _worker(json.loads(args.worker))
+        return ""
+    methods = ["current"] + ([] if args.skip_old else ["old"]) + ([] if args.skip_baseline else ["baseline"])
+    fixed = ["logging.progress_bar=false", "logging.checkpoint_every_frames=1000000000", f"run.seed={args.seed}"]
+    configs, notes, cfg = [], [], None
+    for t in args.threads:
+        for n in args.num_envs:
+            got, err = _check_config(args.recipe, [*fixed, *args.overrides, f"run.threads={t}", f"env.num_envs={n}"])
+            if err is not None:
+                if t == args.threads[0]:
+                    notes.append(f"env.num_envs={n} skipped: {err}")
+                continue
+            configs.append((t, n))
+            cfg = got
+    if not configs:
+        raise SystemExit("no valid configuration: " + "; ".join(notes))
+    fpb, env_id = cfg.ppo.frames_per_batch, cfg.env.id  # the baseline gets the recipe's env and batch size
+    codes = {"current": _current_code(), "baseline": "ppo_mlp_baseline.py"}
+    tmp = Path(tempfile.mkdtemp(prefix="throughput_old_"))
+    trees = {"current": ROOT, "baseline": None}
+    if "old" in methods:
+        codes["old"] = extract_commit(args.old_commit, tmp)
+        trees["old"] = tmp
+    command = " ".join(["python benchmarks/throughput_benchmark.py", *(argv if argv is not None else sys.argv[1:])])
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(), "load_start": _load(), "codes": codes,
+            "rounds": args.rounds, "batches": args.batches, "warmup": args.warmup, "frames_per_batch": fpb,
+            "overrides": " ".join(args.overrides), "command": command}
+    rounds: list[dict] = []
+    t_start = time.perf_counter()
+    try:
+        for rnd in range(args.rounds):
+            for t, n in configs:
+                for m in methods:
+                    spec = {"method": m, "threads": t, "num_envs": n, "batches": args.batches, "warmup": args.warmup,
+                            "seed": args.seed}
+                    if m == "baseline":
+                        spec.update(env_id=env_id, frames_per_batch=fpb)
+                    else:
+                        spec.update(recipe=str(Path(args.recipe).resolve()), tree=str(trees[m]), patch_envs=m == "old",
+                                    overrides=[*fixed, *args.overrides, f"run.threads={t}", f"env.num_envs={n}",
+                                               f"run.total_frames={(args.warmup + args.batches) * fpb}"])
+                    res = run_job(spec, trees[m], args.job_timeout)
+                    rounds.append({"round": rnd, "threads": t, "num_envs": n, "method": m, **res})
+                    msg = res.get("error") or (f"collect {res['collect_fps']:.0f}, update {res['update_fps']:.0f}, "
+                                               f"overall {res['overall_fps']:.0f} fps")
+                    print(f"[{time.perf_counter() - t_start:6.0f}s] round {rnd} | {t} thread(s) | {n} envs | {m}: "
+                          f"{msg}", flush=True)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    meta["load_end"] = _load()
+    rows = summarise(rounds, configs, methods, codes)
+    text = write_report(rows, rounds, notes, Path(args.out), meta)
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main()
