@@ -101,10 +101,11 @@ def first_reaching(rows: list[dict], key: str, target: float) -> tuple[int | Non
     return None, None
 
 
-def mean_std(values: list) -> str:
+def mean_std(values: list, empty: str = "n/a") -> str:
+    """``"mean ± sample std"`` of the values that are not None/NaN (one value: itself; none: ``empty``)."""
     vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
     if not vals:
-        return "n/a"
+        return empty
     if len(vals) == 1:
         return f"{vals[0]:,.2f}"
     return f"{statistics.mean(vals):,.2f} ± {statistics.stdev(vals):,.2f}"

@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from harness import run_freamer, run_jobs  # noqa: E402
+from harness import mean_std, run_freamer, run_jobs  # noqa: E402
 
 DEFAULT_RECIPE = ROOT / "recipes" / "minigrid_multiroom_n2s4.yaml"
 
@@ -49,15 +49,6 @@ def _fmt(v, nd=0):
     if isinstance(v, float):
         return f"{v:.{nd}f}" if nd else f"{v:,.0f}"
     return f"{v:,}"
-
-
-def _mean_std(values):
-    vals = [v for v in values if v is not None]
-    if not vals:
-        return "not reached"
-    if len(vals) == 1:
-        return f"{vals[0]:,.2f}"
-    return f"{statistics.mean(vals):,.2f} ± {statistics.stdev(vals):,.2f}"
 
 
 def write_report(results: list[dict], out: Path, args) -> str:
@@ -98,8 +89,8 @@ def write_report(results: list[dict], out: Path, args) -> str:
         fps[m] = statistics.mean(r["fps"] for r in rs)
         reached = sum(r.get("episodes_to_95") is not None for r in rs)
         lines.append(
-            f"| {names[m]} | {_mean_std([r.get('episodes_to_95') for r in rs])} ({reached}/{len(rs)} seeds reached) | "
-            f"{_mean_std([r['final_success_rate'] for r in rs])} | {fps[m]:.0f} |"
+            f"| {names[m]} | {mean_std([r.get('episodes_to_95') for r in rs], 'not reached')} ({reached}/{len(rs)} seeds reached) | "
+            f"{mean_std([r['final_success_rate'] for r in rs], 'not reached')} | {fps[m]:.0f} |"
         )
     if len(fps) == 2:
         lines += ["", f"Throughput ratio FreamerV1 / PPO-MLP: **{fps['freamer'] / fps['ppo_mlp']:.2f}x** (same run)."]

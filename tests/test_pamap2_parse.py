@@ -14,6 +14,7 @@ import pytest
 from freamer_rl.data import pamap2_parse
 from freamer_rl.data.pamap2 import Pamap2FormatError, load_pamap2_subject, synthetic_recording
 from freamer_rl.data.pamap2_synthetic import _format_rows
+from test_pamap2 import _edit  # the same line editor as the loader's error tests
 
 BLOCKS = (600, 5000, pamap2_parse.BLOCK_BYTES)  # < one row, a few rows, the default
 
@@ -21,14 +22,6 @@ BLOCKS = (600, 5000, pamap2_parse.BLOCK_BYTES)  # < one row, a few rows, the def
 @pytest.fixture(scope="module")
 def lines() -> list[str]:
     return _format_rows(synthetic_recording(101, duration_s=8.0, seed=0).to_array()).splitlines()
-
-
-def _edit(lines: list[str], row: int, col: int, value: str) -> list[str]:
-    out = list(lines)
-    toks = out[row].split(" ")
-    toks[col] = value
-    out[row] = " ".join(toks)
-    return out
 
 
 def _parse_all_ways(path, monkeypatch) -> list:
