@@ -260,23 +260,50 @@ class MiniGridEnv(EnvBase):
             self._token_cache[mission] = tokens
         return tokens
 
-    def _observation(self, obs: dict[str, Any]) -> dict[str, Any]:
-        mission = obs["mission"]
+    def _note_mission(self, mission: str) -> None:
+        """Re-tokenize only when the mission changes (it is constant within an episode)."""
         if mission != self._mission:
             self._mission = mission
             self._mission_tokens = self._tokens_for(mission)
+
+    def _restart(self) -> dict[str, Any]:
+        """Reset the gymnasium env (with a pending seed) and the reward history; returns its observation."""
+        seed, self._pending_seed = self._pending_seed, None
+        obs, _ = self._env.reset(seed=seed)
+        if self.reward_history:
+            self._history = [0.0] * self.reward_history
+        self._note_mission(obs["mission"])
+        return obs
+
+    def _advance(self, action: int) -> tuple[dict[str, Any], float, bool, bool]:
+        """Step the gymnasium env and the reward history: ``(observation, reward, terminated, truncated)``.
+        Shared with :class:`freamer_rl_envs.minigrid_vec.MiniGridVecEnv`, which batches these per-env steps."""
+        obs, reward, terminated, truncated, _ = self._env.step(action)
+        reward = float(reward)
+        if self.reward_history:
+            history = self._history
+            del history[0]
+            history.append(reward)
+        self._note_mission(obs["mission"])
+        return obs, reward, bool(terminated), bool(truncated)
+
+    def _observation(self, obs: dict[str, Any]) -> dict[str, Any]:
         out: dict[str, Any] = {
             "grid": torch.from_numpy(obs["image"].astype(np.int64)),
             "direction": self._directions[obs["direction"]].clone(),
             "mission_tokens": self._mission_tokens.clone(),
         }
         if self.include_mission:
-            out["mission"] = NonTensorData(mission, batch_size=_EMPTY_SIZE, device=self._out_device)
+            out["mission"] = NonTensorData(self._mission, batch_size=_EMPTY_SIZE, device=self._out_device)
         if self.reward_history:
             out["reward_history"] = torch.tensor(self._history, dtype=torch.float32)
         if self.pixels:
-            out["pixels"] = torch.from_numpy(self._unwrapped.get_frame(tile_size=PIXEL_TILE_SIZE, agent_pov=True))
+            out["pixels"] = torch.from_numpy(self.frame())
         return out
+
+    def frame(self) -> np.ndarray:
+        """The RGB agent view ``uint8 [8V, 8V, 3]`` of the current state (the ``"pixels"`` entry)."""
+        return self._unwrapped.get_frame(tile_size=PIXEL_TILE_SIZE, agent_pov=True)
 
     def _finish(self, out: dict[str, Any]) -> TensorDictBase:
         if self._is_cpu:
@@ -296,11 +323,7 @@ class MiniGridEnv(EnvBase):
                 # nothing to reset: hand back the current observation (transforms may have added keys to it)
                 keys = [*self.observation_spec.keys(), *self.done_spec.keys()]
                 return self._last_obs.select(*keys, strict=False).clone()
-        seed, self._pending_seed = self._pending_seed, None
-        obs, _ = self._env.reset(seed=seed)
-        if self.reward_history:
-            self._history = [0.0] * self.reward_history
-        out = self._observation(obs)
+        out = self._observation(self._restart())
         out["done"] = self._false.clone()
         out["terminated"] = self._false.clone()
         out["truncated"] = self._false.clone()
@@ -309,13 +332,7 @@ class MiniGridEnv(EnvBase):
         return td
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
-        action = tensordict.get("action")
-        obs, reward, terminated, truncated, _ = self._env.step(int(action))
-        reward = float(reward)
-        if self.reward_history:
-            history = self._history
-            del history[0]
-            history.append(reward)
+        obs, reward, terminated, truncated = self._advance(int(tensordict.get("action")))
         out = self._observation(obs)
         out["reward"] = torch.tensor((reward,), dtype=torch.float32)
         out["terminated"] = self._true.clone() if terminated else self._false.clone()
@@ -389,5 +406,18 @@ def _minigrid_success(ends: TensorDictBase) -> torch.Tensor:
     return ends["terminated"].reshape(-1) & (ends["reward"].reshape(-1) > 0)
 
 
+def make_minigrid_vec_env(env_id: str, num_envs: int, *, seed: int | None = None, **options: Any) -> EnvBase:
+    """``num_envs`` envs stepped as one env of batch size ``[num_envs]``
+    (:class:`freamer_rl_envs.minigrid_vec.MiniGridVecEnv`; same data as a SerialEnv of :func:`make_minigrid_env`)."""
+    from freamer_rl_envs.minigrid_vec import MiniGridVecEnv  # noqa: PLC0415 (it imports this module)
+
+    return MiniGridVecEnv(env_id, num_envs, seed=seed, **options)
+
+
 #: The ``minigrid`` entry point of the ``freamer_rl.envs`` group.
-ADAPTER = EnvAdapter(make_env=make_minigrid_env, options=_minigrid_options, success=_minigrid_success)
+ADAPTER = EnvAdapter(
+    make_env=make_minigrid_env,
+    options=_minigrid_options,
+    success=_minigrid_success,
+    make_batched_env=make_minigrid_vec_env,
+)

@@ -33,11 +33,15 @@ class EnvAdapter:
             vision modality is used).
         success: ``next-tensordict entries at episode ends [N] -> bool [N]``, or ``None`` when the task has no
             notion of success (the trainer then reports returns only).
+        make_batched_env: ``(env_id, num_envs, *, seed=None, **options) -> EnvBase`` of batch size ``[num_envs]``
+            giving the same data as ``SerialEnv(num_envs, make_env)`` but faster (e.g. one TensorDict per batch
+            instead of one per sub-env), or ``None``: the trainer then uses that SerialEnv.
     """
 
     make_env: Callable[..., Any]
     options: Callable[[Any], dict[str, Any]] = _no_options
     success: Callable[[Any], torch.Tensor] | None = None
+    make_batched_env: Callable[..., Any] | None = None
 
 ENTRY_POINT_GROUP = "freamer_rl.envs"
 

@@ -23,7 +23,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
-from tensordict.nn import TensorDictModule, TensorDictSequential
+from tensordict.nn import TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Composite
@@ -36,6 +36,7 @@ from freamer_rl.layers.encoders import CrossModalAttention, SlotPool
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
+from freamer_rl.tdmodule import KeyedModule
 
 logger = logging.getLogger(__name__)
 
@@ -97,6 +98,7 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
         gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
         fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
         dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
+        dnc_compile=cfg.dnc.compile,
     )  # fmt: skip
     steps.extend(layers)
     trunk = TensorDictSequential(*steps)
@@ -129,6 +131,7 @@ def build_filter_mix_memory(
     dnc: bool = True,
     memory_slots: int = 32,
     memory_width: int = 64,
+    dnc_compile: bool = False,
     output_dim: int | None = None,
     out_key: NestedKey = "hidden",
     memory_key: NestedKey = ("dnc", "memory"),
@@ -156,6 +159,7 @@ def build_filter_mix_memory(
         gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
         fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
         dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
+        dnc_compile: ``torch.compile`` the DNC's recurrent-mode step (:class:`~freamer_rl.layers.dnc.DNCModule`).
         output_dim: ``D_out`` (default ``d``). out_key: where Layer 4 writes ``e_aug``.
         memory_key, is_init_key: DNC state and episode-start keys.
 
@@ -171,20 +175,21 @@ def build_filter_mix_memory(
     refiners = nn.ModuleDict()
     for m in modalities:
         refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m])
-        steps.append(TensorDictModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
+        steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
     steps.append(
-        TensorDictModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
+        KeyedModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
     )
     fuser = FNOFuser(num_modalities=len(modalities), dim=dim, modes=fno_modes, residual_scale=fno_residual_scale,
                      output_norm=fno_output_norm)  # fmt: skip
-    steps.append(TensorDictModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
+    steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
     memory = None
     if dnc:
         memory = DNCModule(input_dim=dim, memory_slots=memory_slots, memory_width=memory_width, output_dim=d_out,
-                           in_key="fused", out_key=out_key, memory_key=memory_key, is_init_key=is_init_key)  # fmt: skip
+                           in_key="fused", out_key=out_key, memory_key=memory_key, is_init_key=is_init_key,
+                           compile=dnc_compile)  # fmt: skip
         steps.append(memory)
     else:
-        steps.append(TensorDictModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
+        steps.append(KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
                                       out_keys=[out_key]))  # fmt: skip
     return steps, refiners, fuser, memory
 
@@ -198,7 +203,7 @@ def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.M
         keys = modality_keys(m, cfg.observation_keys)
         ctx = EncoderContext(name=m, keys=keys, specs=tuple(observation_spec[k] for k in keys), cfg=cfg)
         out_key = ("slots", m) if entry.kind == "slots" else ("embed", m)
-        encoder = TensorDictModule(entry.build_encoder(ctx), in_keys=list(keys), out_keys=[out_key])
+        encoder = KeyedModule(entry.build_encoder(ctx), in_keys=list(keys), out_keys=[out_key])
         if m in cfg.freeze_encoders:
             encoder.requires_grad_(False)  # the CLIP tower is frozen regardless
             logger.info("model.freeze_encoders: the %s encoder is frozen (%d parameters)", m,
@@ -209,12 +214,12 @@ def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.M
     if "vision" in slot_mods and "language" in slot_mods:
         # bidirectional cross-modal attention between vision and language slots (Section 3.2)
         steps.append(
-            TensorDictModule(
+            KeyedModule(
                 CrossModalAttention(cfg.embed_dim, heads=cfg.cross_modal_heads),
                 in_keys=[("slots", "vision"), ("slots", "language")],
                 out_keys=[("slots", "vision"), ("slots", "language")],
             )
         )
     for m in slot_mods:
-        steps.append(TensorDictModule(SlotPool(), in_keys=[("slots", m)], out_keys=[("embed", m)]))
+        steps.append(KeyedModule(SlotPool(), in_keys=[("slots", m)], out_keys=[("embed", m)]))
     return steps

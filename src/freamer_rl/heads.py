@@ -16,12 +16,13 @@ gain 0.01, as PPO implementations do); continuous heads start with ``loc ~ 0`` a
 from __future__ import annotations
 
 import torch
-from tensordict.nn import NormalParamExtractor, TensorDictModule
+from tensordict.nn import NormalParamExtractor
 from torch import nn
 from torchrl.data import Bounded, Categorical, OneHot, Unbounded
 from torchrl.modules import IndependentNormal, OneHotCategorical, ProbabilisticActor, TanhNormal, ValueOperator
 
 from freamer_rl.errors import EnvSetupError
+from freamer_rl.tdmodule import KeyedModule
 
 __all__ = ["build_actor", "build_critic", "action_kind", "mlp_head"]
 
@@ -61,7 +62,7 @@ def build_actor(action_spec, in_dim: int, hidden: int, in_key="hidden") -> Proba
         net = mlp_head(in_dim, hidden, n, out_gain=0.01)
         dist = torch.distributions.Categorical if kind == "categorical" else OneHotCategorical
         return ProbabilisticActor(
-            TensorDictModule(net, in_keys=[in_key], out_keys=["logits"]),
+            KeyedModule(net, in_keys=[in_key], out_keys=["logits"]),
             in_keys=["logits"], out_keys=["action"], spec=action_spec, distribution_class=dist, return_log_prob=True,
         )
     shape = tuple(action_spec.shape)
@@ -75,7 +76,7 @@ def build_actor(action_spec, in_dim: int, hidden: int, in_key="hidden") -> Proba
         dist = IndependentNormal
         kwargs = {"event_dim": len(shape)}
     return ProbabilisticActor(
-        TensorDictModule(net, in_keys=[in_key], out_keys=["loc", "scale"]),
+        KeyedModule(net, in_keys=[in_key], out_keys=["loc", "scale"]),
         in_keys=["loc", "scale"], out_keys=["action"], spec=action_spec, distribution_class=dist,
         distribution_kwargs=kwargs, return_log_prob=True,
     )

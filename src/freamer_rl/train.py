@@ -88,11 +88,15 @@ def _single_env_fn(adapter: str, env_id: str, options: dict) -> EnvBase:
 
 
 def make_batched_env(cfg: FreamerConfig, primers: list, seed: int, num_envs: int | None = None) -> EnvBase:
-    """``num_envs`` copies in one process (SerialEnv: 2 cores do not profit from ParallelEnv) plus
-    InitTracker, StepCounter, RewardSum and the model's state primers."""
+    """``num_envs`` copies in one process (2 cores do not profit from ParallelEnv) plus InitTracker, StepCounter,
+    RewardSum and the model's state primers: the adapter's own batched env when it has one
+    (``EnvAdapter.make_batched_env``), else a SerialEnv of single envs."""
     n = num_envs or cfg.env.num_envs
-    fn = functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg))
-    base = SerialEnv(n, fn)
+    adapter = env_registry.get_adapter(cfg.env.adapter)
+    if adapter.make_batched_env is not None:
+        base = adapter.make_batched_env(cfg.env.id, n, **env_options(cfg))
+    else:
+        base = SerialEnv(n, functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg)))
     env = TransformedEnv(base, Compose(InitTracker(), StepCounter(), RewardSum(), *[p.clone() for p in primers]))
     env.set_seed(seed)
     return env
@@ -285,14 +289,26 @@ class Trainer:
 
     @torch.no_grad()
     def _compute_advantage(self, data: TensorDictBase) -> TensorDictBase:
-        """Step-mode values on the stored states (root and next), then TorchRL's GAE."""
+        """Step-mode values on the stored states (root and next), then TorchRL's GAE.
+
+        ``data`` is ``[*B, T]`` with time last (the collector's layout). Within an episode the next state of step
+        ``t`` is the root state of step ``t + 1`` (the same observation and DNC memory, ``is_init`` False), so its
+        value is taken from the root pass; only the steps whose episode ended and the last step of each row get
+        their own value pass (about ``1/T`` of the batch plus the episode ends, instead of a second full pass).
+        """
         value = self.modules.value
         keys = [k for k in value.in_keys if k != "is_init"]
         root = data.select(*keys, "is_init", strict=False)
-        nxt = data["next"].select(*keys, strict=False)
-        nxt.set("is_init", torch.zeros_like(data["is_init"]))  # a next state never starts an episode
-        data.set("state_value", value(root)["state_value"])
-        data.set(("next", "state_value"), value(nxt)["state_value"])
+        root_value = value(root)["state_value"]  # [*B, T, 1]
+        need = data["next", "done"].reshape(data.shape).clone()  # the next root is a reset: V(next) is not there
+        need[..., -1] = True  # the step after the batch was not collected
+        next_value = torch.empty_like(root_value)
+        next_value[..., :-1, :] = root_value[..., 1:, :]
+        nxt = data["next"][need].select(*keys, strict=False)
+        nxt.set("is_init", torch.zeros(*nxt.shape, 1, dtype=torch.bool, device=nxt.device))  # never an episode start
+        next_value[need] = value(nxt)["state_value"]
+        data.set("state_value", root_value)
+        data.set(("next", "state_value"), next_value)
         return self.gae(data)
 
     # -- optimisation ---------------------------------------------------------------------------------------
@@ -302,7 +318,9 @@ class Trainer:
             lr = p.lr * max(1.0 - self.frames / self.cfg.run.total_frames, 0.0)
             for group in self.optimizer.param_groups:
                 group["lr"] = lr
-        seqs = split_sequences(data, p.sequence_length)
+        # the minibatches need the trunk's inputs, the action, its log-prob, advantage and value target: "next"
+        # (GAE is done) and the trunk's intermediate outputs (recomputed on every minibatch) would only be copied
+        seqs = split_sequences(data.exclude("next", *self.modules.trunk.out_keys), p.sequence_length)
         rb = self._sequence_buffer
         rb.empty()
         rb.extend(seqs)
@@ -333,13 +351,15 @@ class Trainer:
         return {k: v / count for k, v in sums.items()}
 
     def _fallback_counts(self) -> dict[str, int]:
-        """Numerical fallbacks: slot-attention NaN guards and DNC memory clamps counted by the layers, and optimiser
-        steps skipped for a non-finite gradient (this run's count, kept across resumes)."""
+        """Numerical fallbacks: slot-attention NaN guards and DNC memory clamps counted by the layers, optimiser
+        steps skipped for a non-finite gradient (this run's count, kept across resumes), and compiled parts that
+        fell back to eager execution (``model.dnc.compile``)."""
         mods = list(self.modules.trunk.modules())
         return {
             "nan_fallbacks": int(sum(int(getattr(m, "nan_fallbacks", 0)) for m in mods)),
             "dnc_clip_events": int(sum(int(getattr(m, "clip_events", 0)) for m in mods)),
             "skipped_steps": self.step_stats.skipped,
+            "compile_fallbacks": int(sum(int(getattr(m, "compile_fallbacks", 0)) for m in mods)),
         }
 
     # -- main -----------------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ from tensordict.utils import NestedKey
 from torch import nn
 
 from freamer_rl.layers.checks import check_finite, value_checks_active
+from freamer_rl.layers.compiled import CompileOrEager
 
 logger = logging.getLogger(__name__)
 
@@ -171,16 +172,19 @@ class DNCMemory(nn.Module):
         r, new_memory = self.memory_step(self.interface_vectors(x), memory)
         return self.output(x, r), new_memory
 
-    def memory_step(self, controls: dict[str, torch.Tensor], memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def memory_step(
+        self, controls: dict[str, torch.Tensor], memory: torch.Tensor, count: bool = True
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """The memory-dependent part of a step: write then read (Appendix F.1).
 
         ``controls`` from :meth:`interface_vectors` (``[*B, ...]``), ``memory [*B, N, W]`` ->
         ``(read vector r [*B, W], M' [*B, N, W])``. Split out so a sequence can project all its interface vectors
-        (and outputs) in one batched matmul and loop over time only here.
+        (and outputs) in one batched matmul and loop over time only here. ``count=False`` skips counting clamps
+        (the caller counts once with :meth:`count_clamped`).
         """
         c = controls
         w_w = self.content_weights(c["write_key"], memory, c["write_strength"])
-        new_memory = self._bound(self.write(memory, w_w, c["erase"], c["write_vector"], c["write_gate"]))
+        new_memory = self._bound(self.write(memory, w_w, c["erase"], c["write_vector"], c["write_gate"]), count)
         w_r = self.content_weights(c["read_key"], new_memory, c["read_strength"])
         return self.read(new_memory, w_r), new_memory
 
@@ -188,23 +192,34 @@ class DNCMemory(nn.Module):
         """``e_aug = GELU(W_out [x; r] + b)`` for ``x [*B, D_in]``, ``r [*B, W]`` -> ``[*B, D_out]``."""
         return F.gelu(self.out(torch.cat([x, r], dim=-1)))
 
-    def _bound(self, memory: torch.Tensor) -> torch.Tensor:
-        """Clamp to ``[-memory_clip, memory_clip]``, counting and logging clamped entries."""
+    def _bound(self, memory: torch.Tensor, count: bool = True) -> torch.Tensor:
+        """Clamp to ``[-memory_clip, memory_clip]``, counting and logging clamped entries (when ``count``)."""
         clip = self.memory_clip
         if clip is None:
             return memory
-        if value_checks_active(memory):  # counting is a host sync: eager mode only
-            n = int((memory.detach().abs() > clip).sum())
-            if n:
-                self.clip_events += n
-                self._clip_warnings += 1
-                if self._clip_warnings <= 10 or self._clip_warnings % 1000 == 0:
-                    logger.warning(
-                        "DNCMemory: clamped %d memory entries to |M| <= %g (total clamped entries: %d, "
-                        "warning %d; only the first 10 and every 1000th are logged)",
-                        n, clip, self.clip_events, self._clip_warnings,
-                    )
+        if count and value_checks_active(memory) and memory.numel():  # counting is a host sync: eager mode only
+            lo, hi = torch.aminmax(memory.detach())  # one pass; the count below only runs when something is out
+            if float(hi) > clip or float(lo) < -clip:
+                self._note_clamped(int((memory.detach().abs() > clip).sum()))
         return memory.clamp(-clip, clip)
+
+    def count_clamped(self, memory: torch.Tensor) -> None:
+        """Count (and log) the entries of an already clamped ``memory`` that sit at the bound: used after a loop of
+        uncounted steps (:meth:`memory_step` with ``count=False``), one pass instead of one per step."""
+        if self.memory_clip is None or not value_checks_active(memory) or not memory.numel():
+            return
+        self._note_clamped(int((memory.detach().abs() >= self.memory_clip).sum()))
+
+    def _note_clamped(self, n: int) -> None:
+        if not n:
+            return
+        self.clip_events += n
+        self._clip_warnings += 1
+        if self._clip_warnings <= 10 or self._clip_warnings % 1000 == 0:
+            logger.warning(
+                "DNCMemory: clamped %d memory entries to |M| <= %g (total clamped entries: %d, warning %d; only the "
+                "first 10 and every 1000th are logged)", n, self.memory_clip, self.clip_events, self._clip_warnings,
+            )
 
     def forward(self, x: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Alias of :meth:`step`."""
@@ -252,6 +267,10 @@ class DNCModule(TensorDictModuleBase):
         is_init_key: episode-start marker (default ``"is_init"``).
         default_recurrent_mode: mode used when no ``set_recurrent_mode`` context is active (default step mode).
         memory_clip: see :class:`DNCMemory`.
+        compile: run the per-step memory update of recurrent mode (the training loop over ``T``) through
+            ``torch.compile`` (:class:`~freamer_rl.layers.compiled.CompileOrEager`: a failed compilation warns,
+            is counted in ``compile_fallbacks`` and runs eagerly). Same maths; about 2x faster forward and backward
+            on CPU for ``[32, 16]`` sequences. Step mode (collection, values) stays eager: its batch sizes vary.
     """
 
     def __init__(
@@ -267,9 +286,14 @@ class DNCModule(TensorDictModuleBase):
         is_init_key: NestedKey = "is_init",
         default_recurrent_mode: bool | None = None,
         memory_clip: float | None = 10.0,
+        compile: bool = False,
     ) -> None:
         super().__init__()
         self.dnc = DNCMemory(input_dim, memory_slots, memory_width, output_dim, memory_clip=memory_clip)
+        # a plain attribute (not a Module): the state dict and parameters stay those of ``self.dnc``
+        self._sequence_step = (
+            CompileOrEager(self.dnc.memory_step, "DNCModule recurrent step", dynamic=False) if compile else None
+        )
         self.in_key = unravel_key(in_key)
         self.out_key = unravel_key(out_key)
         self.memory_key = unravel_key(memory_key)
@@ -278,6 +302,11 @@ class DNCModule(TensorDictModuleBase):
         self.in_keys = [self.in_key, self.memory_key, self.is_init_key]
         self.out_keys = [self.out_key, self.next_memory_key]
         self._recurrent_mode = default_recurrent_mode
+
+    @property
+    def compile_fallbacks(self) -> int:
+        """How often ``compile=True`` fell back to eager execution (0 or 1)."""
+        return self._sequence_step.fallbacks if self._sequence_step is not None else 0
 
     @property
     def recurrent_mode(self) -> bool:
@@ -375,12 +404,15 @@ class DNCModule(TensorDictModuleBase):
         # Interface vectors and outputs do not depend on the memory: compute them for all T at once and
         # loop over time only for addressing, write and read.
         controls = self.dnc.interface_vectors(x)
+        step = self._sequence_step or self.dnc.memory_step
         reads, mems = [], []
         for t in range(x.shape[tdim]):
             reset = is_init.select(tdim, t)[..., None, None]
             m = torch.where(reset, torch.zeros_like(m), m)
-            r, m = self.dnc.memory_step({k: v.select(tdim, t) for k, v in controls.items()}, m)
+            r, m = step({k: v.select(tdim, t) for k, v in controls.items()}, m, False)
             reads.append(r)
             mems.append(m)
         out = self.dnc.output(x, torch.stack(reads, dim=tdim))
-        return out, torch.stack(mems, dim=tdim)
+        memories = torch.stack(mems, dim=tdim)
+        self.dnc.count_clamped(memories)  # once per sequence, not once per step
+        return out, memories

@@ -28,6 +28,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from freamer_rl.layers.checks import check_finite, value_checks_active
+from freamer_rl.layers.dedup import dedup_rows
 from freamer_rl.layers.slot_attention import SlotAttention
 
 __all__ = [
@@ -100,9 +101,14 @@ class RewardEncoder(nn.Module):
             )
         check_finite(rewards, "RewardEncoder reward_history")
         batch_shape = rewards.shape[:-1]
-        x = rewards.reshape(-1, 1, self.history).to(self.proj.weight.dtype)
-        h = F.relu(self.conv(x)).flatten(1)
-        return self.proj(h).reshape(*batch_shape, self.out_dim)
+        x = rewards.reshape(-1, self.history).to(self.proj.weight.dtype)
+        # sparse rewards repeat the same (mostly all-zero) history: encode each distinct row once (eager only)
+        return dedup_rows(self._encode, x, x).reshape(*batch_shape, self.out_dim)
+
+    def _encode(self, x: torch.Tensor) -> torch.Tensor:
+        """``x [b, H]`` -> ``[b, out_dim]``."""
+        h = F.relu(self.conv(x.unsqueeze(1))).flatten(1)
+        return self.proj(h)
 
 
 class LanguageEncoder(nn.Module):

@@ -43,6 +43,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from freamer_rl.layers.checks import check_finite
+from freamer_rl.layers.dedup import dedup_rows
 
 __all__ = ["FlowMatchingRefiner", "cfm_interpolant"]
 
@@ -96,6 +97,8 @@ class FlowMatchingRefiner(nn.Module):
         num_hidden_layers: hidden layers of the velocity MLP (default 2).
         last_layer_scale: the last velocity layer's default init is multiplied by this factor (bias zeroed), so
             ``v ~ 0`` and the refiner is near identity at initialisation.
+        deduplicate: in eager mode, integrate each distinct input row once when at least half the rows repeat
+            (a constant mission or an all-zero reward history; :mod:`freamer_rl.layers.dedup`). Same maths.
 
     The velocity field is ``v_theta(x, t) = MLP([x; t])`` (time concatenated as an extra input, SiLU activations).
     The gate logit is the scalar parameter ``alpha`` (named so optimisers/OGM-GE can single it out).
@@ -113,6 +116,7 @@ class FlowMatchingRefiner(nn.Module):
         *,
         num_hidden_layers: int = 2,
         last_layer_scale: float = 1e-2,
+        deduplicate: bool = True,
     ) -> None:
         super().__init__()
         if dim <= 0 or hidden <= 0:
@@ -123,6 +127,7 @@ class FlowMatchingRefiner(nn.Module):
             raise ValueError(f"num_hidden_layers must be >= 1; got {num_hidden_layers}")
         self.dim = dim
         self.steps = steps
+        self.deduplicate = deduplicate
         layers: list[nn.Module] = []
         in_features = dim + 1
         for _ in range(num_hidden_layers):
@@ -183,7 +188,11 @@ class FlowMatchingRefiner(nn.Module):
         if e.shape[-1] != self.dim:
             raise ValueError(f"e must have last dim {self.dim} (the refiner's dim); got shape {tuple(e.shape)}")
         check_finite(e, "FlowMatchingRefiner input")
-        x_n = self.integrate(e, steps)
+        if self.deduplicate and e.ndim > 1:
+            flat = e.reshape(-1, self.dim)
+            x_n = dedup_rows(lambda rows: self.integrate(rows, steps), flat, flat).reshape(e.shape)
+        else:
+            x_n = self.integrate(e, steps)
         return e + self.gate.to(e.dtype) * (x_n - e)
 
     def cfm_loss(self, e: torch.Tensor, noise_std: float = 1.0) -> torch.Tensor:
