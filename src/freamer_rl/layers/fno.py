@@ -361,8 +361,10 @@ class FNOFuser(nn.Module):
                 f"FNOFuser expects E of shape [*B, M={self.num_modalities}, d={self.dim}]; got {tuple(e.shape)}"
             )
         check_finite(e, "FNOFuser modal_stack")
-        spec = self.spectral(e)  # [*B, M, d]  IFFT(R_k E^_k)      (Eq. A14)
-        pw = self.pointwise(e.transpose(-1, -2)).transpose(-1, -2)  # [*B, M, d]  W E
+        # [*B, M, d]  IFFT(R_k E^_k) (Eq. A14), as DFT matmuls along d (faster than FFTs for d = 128 on CPU)
+        spec = self.spectral.forward_length_first(e.movedim(-1, 0)).movedim(0, -1)
+        # [*B, M, d]  W E, the 1x1 mixing across modalities (einsum: 4x faster than a Linear on the transpose)
+        pw = torch.einsum("nm,...md->...nd", self.pointwise.weight, e) + self.pointwise.bias[:, None]
         e_out = e + self.residual_scale.to(e.dtype) * F.gelu(self.norm(spec + pw))  # Eq. A15 (scaled residual)
         fused = e_out.mean(dim=-2)
         if self.output_norm is not None:
