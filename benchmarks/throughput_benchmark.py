@@ -7,7 +7,8 @@
 Every measurement is one subprocess with ``torch.set_num_threads(t)``, run one at a time and interleaved round by
 round: for each round, for each (threads, env.num_envs) configuration, the current code, then the older commit
 (``--old-commit``, default 411f9a7, extracted with ``git archive`` into a temporary folder and imported through
-``PYTHONPATH=<tree>/src:<tree>``), then the baseline. So all three see the same machine load, and the ratios are
+``PYTHONPATH=<tree>/src:<tree>``) with its own copy of the recipe when it has one (a recipe that gained keys
+since would not load in its config schema), then the baseline. So all three see the same machine load, and the ratios are
 taken round by round between measurements a few seconds apart.
 
 What is timed, per batch of ``ppo.frames_per_batch`` frames (one warm-up batch first, then ``--batches`` K):
@@ -192,9 +193,10 @@ def _current_code() -> str:
 
 
 def extract_commit(commit: str, dest: Path) -> str:
-    """``git archive`` the commit's ``src`` and ``envs`` into ``dest`` (no worktree, nothing in .git changes)."""
+    """``git archive`` the commit's ``src``, ``envs`` and ``recipes`` into ``dest`` (no worktree, nothing in .git
+    changes)."""
     sha = _git("rev-parse", "--short", f"{commit}^{{commit}}")
-    paths = [p for p in ("src", "envs") if _git("ls-tree", "--name-only", sha, p)]
+    paths = [p for p in ("src", "envs", "recipes") if _git("ls-tree", "--name-only", sha, p)]
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", sha, *paths], check=True,
                              capture_output=True).stdout
     dest.mkdir(parents=True, exist_ok=True)
@@ -220,6 +222,16 @@ def run_job(spec: dict, tree: Path | None, timeout: float) -> dict:
             return json.loads(line[len(RESULT_TAG):])
     tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
     return {"error": f"exit {proc.returncode}: {tail[:300]}", "wall_s": time.perf_counter() - t0}
+
+
+def _old_recipe(recipe: Path, tree: Path) -> str:
+    """The older commit's copy of ``recipe`` (same path in its tree) when it has one, else ``recipe`` itself: a
+    recipe that gained keys since (e.g. ``model.dnc.compile``) would not load in the older config schema."""
+    try:
+        candidate = tree / recipe.relative_to(ROOT)
+    except ValueError:  # a recipe outside this checkout
+        return str(recipe)
+    return str(candidate) if candidate.is_file() else str(recipe)
 
 
 def _check_config(recipe: str, overrides: list[str]):
@@ -386,9 +398,15 @@ def main(argv: list[str] | None = None) -> str:
     codes = {"current": _current_code(), "baseline": "ppo_mlp_baseline.py"}
     tmp = Path(tempfile.mkdtemp(prefix="throughput_old_"))
     trees = {"current": ROOT, "baseline": None}
+    recipe = Path(args.recipe).resolve()
+    recipes = {"current": str(recipe)}
     if "old" in methods:
         codes["old"] = extract_commit(args.old_commit, tmp)
         trees["old"] = tmp
+        recipes["old"] = _old_recipe(recipe, tmp)
+        if recipes["old"] != str(recipe):
+            notes.append(f"The older commit runs its own copy of the recipe ({recipe.relative_to(ROOT)} at "
+                         f"{codes['old']}): each commit's default recipe, which the old config loader can read.")
     command = " ".join(["python benchmarks/throughput_benchmark.py", *(argv if argv is not None else sys.argv[1:])])
     meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(), "load_start": _load(), "codes": codes,
             "rounds": args.rounds, "batches": args.batches, "warmup": args.warmup, "frames_per_batch": fpb,
@@ -404,7 +422,7 @@ def main(argv: list[str] | None = None) -> str:
                     if m == "baseline":
                         spec.update(env_id=env_id, frames_per_batch=fpb)
                     else:
-                        spec.update(recipe=str(Path(args.recipe).resolve()), tree=str(trees[m]), patch_envs=m == "old",
+                        spec.update(recipe=recipes[m], tree=str(trees[m]), patch_envs=m == "old",
                                     overrides=[*fixed, *args.overrides, f"run.threads={t}", f"env.num_envs={n}",
                                                f"run.total_frames={(args.warmup + args.batches) * fpb}"])
                     res = run_job(spec, trees[m], args.job_timeout)
