@@ -98,7 +98,7 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
         gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
         fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
         dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
-        dnc_compile=cfg.dnc.compile,
+        dnc_compile=cfg.compile,
     )  # fmt: skip
     steps.extend(layers)
     trunk = TensorDictSequential(*steps)

@@ -115,7 +115,7 @@ def _state_encoder(ctx: EncoderContext) -> nn.Module:
     grid_spec = ctx.specs[0]
     return StateFNOEncoder(
         out_dim=ctx.cfg.embed_dim, channels=ctx.cfg.state.channels, modes=ctx.cfg.state.modes,
-        view_size=int(grid_spec.shape[0]),
+        view_size=int(grid_spec.shape[0]), compile=ctx.cfg.compile,
     )
 
 

@@ -165,7 +165,10 @@ class FlowMatchingRefiner(nn.Module):
             bias = first.weight[:, self.dim] * float(t)
             if first.bias is not None:
                 bias = bias + first.bias
-            return self.net[1:](F.linear(x, first.weight[:, : self.dim], bias))
+            h = F.linear(x, first.weight[:, : self.dim], bias)
+            for layer in list(self.net)[1:]:  # not self.net[1:]: that builds a new Sequential on every call
+                h = layer(h)
+            return h
         return self.net(torch.cat([x, _time_column(t, x)], dim=-1))
 
     def integrate(self, e: torch.Tensor, steps: int | None = None) -> torch.Tensor:

@@ -20,7 +20,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from freamer_rl.layers.checks import check_finite, value_checks_active
+from freamer_rl.layers.checks import check_finite, is_transformed, value_checks_active
+from freamer_rl.layers.compiled import CompileOrEager
 
 __all__ = ["SpectralConv1d", "StateFNOEncoder", "FNOFuser", "smoothness_loss"]
 
@@ -191,6 +192,8 @@ class StateFNOEncoder(nn.Module):
         modes: Fourier modes kept along the length-``L`` cell sequence (``<= L//2 + 1``).
         num_objects, num_colors, num_states, num_directions: index ranges (MiniGrid: 11, 6, 3, 4).
         view_size: side of the agent's square view (MiniGrid default 7).
+        compile: run the maths (after the eager input checks) through ``torch.compile`` with dynamic shapes
+            (:class:`~freamer_rl.layers.compiled.CompileOrEager`); eager under ``torch.vmap``/``torch.func``.
 
     Shapes:
         forward: ``grid int64 [*B, view_size, view_size, 3]``, ``direction int64 [*B]`` (or ``[*B, 1]``)
@@ -212,6 +215,7 @@ class StateFNOEncoder(nn.Module):
         num_directions: int = 4,
         *,
         view_size: int = 7,
+        compile: bool = False,
     ) -> None:
         super().__init__()
         self.out_dim = out_dim
@@ -231,6 +235,13 @@ class StateFNOEncoder(nn.Module):
         self.register_buffer(
             "_offsets", torch.tensor([0, num_objects, num_objects + num_colors]), persistent=False
         )
+        # a plain attribute (not a Module): parameters and state dict are unchanged
+        self._compiled_encode = CompileOrEager(self._encode, "StateFNOEncoder", dynamic=True) if compile else None
+
+    @property
+    def compile_fallbacks(self) -> int:
+        """How often ``compile=True`` fell back to eager execution (0 or 1)."""
+        return self._compiled_encode.fallbacks if self._compiled_encode is not None else 0
 
     def _validate(self, grid: torch.Tensor, direction: torch.Tensor) -> None:
         v = self.view_size
@@ -265,6 +276,11 @@ class StateFNOEncoder(nn.Module):
         if grid.ndim >= 3 and direction.shape == (*grid.shape[:-3], 1):
             direction = direction.squeeze(-1)
         self._validate(grid, direction)
+        eager = self._compiled_encode is None or is_transformed(grid, direction)
+        return (self._encode if eager else self._compiled_encode)(grid, direction)
+
+    def _encode(self, grid: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
+        """The maths of :meth:`forward` on validated inputs (``direction [*B]``)."""
         batch_shape = grid.shape[:-3]
         g = grid.long().reshape(-1, self.seq_len, 3).transpose(0, 1)  # [L, B', 3]: cell-major for the DFT matmuls
         # The three embeddings summed, as one multi-hot matmul (identical maths, much faster backward than three
