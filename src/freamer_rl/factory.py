@@ -98,7 +98,7 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
         gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
         fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
         dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
-        dnc_compile=cfg.compile,
+        compile=cfg.compile,
     )  # fmt: skip
     steps.extend(layers)
     trunk = TensorDictSequential(*steps)
@@ -131,7 +131,7 @@ def build_filter_mix_memory(
     dnc: bool = True,
     memory_slots: int = 32,
     memory_width: int = 64,
-    dnc_compile: bool = False,
+    compile: bool = False,
     output_dim: int | None = None,
     out_key: NestedKey = "hidden",
     memory_key: NestedKey = ("dnc", "memory"),
@@ -159,7 +159,8 @@ def build_filter_mix_memory(
         gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
         fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
         dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
-        dnc_compile: ``torch.compile`` the DNC's recurrent-mode step (:class:`~freamer_rl.layers.dnc.DNCModule`).
+        compile: ``torch.compile`` the refiners' Euler integration, the fuser and the DNC step (each with an eager
+            fallback, :class:`~freamer_rl.layers.compiled.CompileOrEager`).
         output_dim: ``D_out`` (default ``d``). out_key: where Layer 4 writes ``e_aug``.
         memory_key, is_init_key: DNC state and episode-start keys.
 
@@ -174,19 +175,20 @@ def build_filter_mix_memory(
     steps: list[nn.Module] = []
     refiners = nn.ModuleDict()
     for m in modalities:
-        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m])
+        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m],
+                                          compile=compile)
         steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
     steps.append(
         KeyedModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
     )
     fuser = FNOFuser(num_modalities=len(modalities), dim=dim, modes=fno_modes, residual_scale=fno_residual_scale,
-                     output_norm=fno_output_norm)  # fmt: skip
+                     output_norm=fno_output_norm, compile=compile)  # fmt: skip
     steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
     memory = None
     if dnc:
         memory = DNCModule(input_dim=dim, memory_slots=memory_slots, memory_width=memory_width, output_dim=d_out,
                            in_key="fused", out_key=out_key, memory_key=memory_key, is_init_key=is_init_key,
-                           compile=dnc_compile)  # fmt: skip
+                           compile=compile)  # fmt: skip
         steps.append(memory)
     else:
         steps.append(KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
