@@ -172,46 +172,43 @@ class DNCMemory(nn.Module):
         r, new_memory = self.memory_step(self.interface_vectors(x), memory)
         return self.output(x, r), new_memory
 
-    def memory_step(
-        self, controls: dict[str, torch.Tensor], memory: torch.Tensor, count: bool = True
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """The memory-dependent part of a step: write then read (Appendix F.1).
+    def memory_step(self, controls: dict[str, torch.Tensor], memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The memory-dependent part of a step: write then read (Appendix F.1); clamped entries are counted.
 
         ``controls`` from :meth:`interface_vectors` (``[*B, ...]``), ``memory [*B, N, W]`` ->
         ``(read vector r [*B, W], M' [*B, N, W])``. Split out so a sequence can project all its interface vectors
-        (and outputs) in one batched matmul and loop over time only here. ``count=False`` skips counting clamps
-        (the caller counts once with :meth:`count_clamped`).
+        (and outputs) in one batched matmul and loop over time only here.
         """
+        r, new_memory, clamped = self.write_read(controls, memory)
+        self.note_clamped(clamped)
+        return r, new_memory
+
+    def write_read(
+        self, controls: dict[str, torch.Tensor], memory: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """:meth:`memory_step` without the host-side count: ``(r, M', clamped)`` with ``clamped`` the number of
+        entries the clamp changed, a 0-d tensor (free of host syncs: compilable; sum it over a loop and pass the
+        total to :meth:`note_clamped` once)."""
         c = controls
         w_w = self.content_weights(c["write_key"], memory, c["write_strength"])
-        new_memory = self._bound(self.write(memory, w_w, c["erase"], c["write_vector"], c["write_gate"]), count)
+        written = self.write(memory, w_w, c["erase"], c["write_vector"], c["write_gate"])
+        clip = self.memory_clip
+        if clip is None:
+            new_memory, clamped = written, torch.zeros((), dtype=torch.long, device=written.device)
+        else:
+            new_memory, clamped = written.clamp(-clip, clip), (written.detach().abs() > clip).sum()
         w_r = self.content_weights(c["read_key"], new_memory, c["read_strength"])
-        return self.read(new_memory, w_r), new_memory
+        return self.read(new_memory, w_r), new_memory, clamped
 
     def output(self, x: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
         """``e_aug = GELU(W_out [x; r] + b)`` for ``x [*B, D_in]``, ``r [*B, W]`` -> ``[*B, D_out]``."""
         return F.gelu(self.out(torch.cat([x, r], dim=-1)))
 
-    def _bound(self, memory: torch.Tensor, count: bool = True) -> torch.Tensor:
-        """Clamp to ``[-memory_clip, memory_clip]``, counting and logging clamped entries (when ``count``)."""
-        clip = self.memory_clip
-        if clip is None:
-            return memory
-        if count and value_checks_active(memory) and memory.numel():  # counting is a host sync: eager mode only
-            lo, hi = torch.aminmax(memory.detach())  # one pass; the count below only runs when something is out
-            if float(hi) > clip or float(lo) < -clip:
-                self._note_clamped(int((memory.detach().abs() > clip).sum()))
-        return memory.clamp(-clip, clip)
-
-    def count_clamped(self, memory: torch.Tensor) -> None:
-        """Count (and log) the entries of an already clamped ``memory`` that sit at the bound: used after a loop of
-        uncounted steps (:meth:`memory_step` with ``count=False``), one pass instead of one per step."""
-        clip = self.memory_clip
-        if clip is None or not value_checks_active(memory) or not memory.numel():
-            return
-        lo, hi = torch.aminmax(memory.detach())  # one pass; the count only runs when an entry sits at the bound
-        if float(hi) >= clip or float(lo) <= -clip:
-            self._note_clamped(int((memory.detach().abs() >= clip).sum()))
+    def note_clamped(self, clamped: torch.Tensor) -> None:
+        """Add a clamp count from :meth:`write_read` to :attr:`clip_events` (and log it). One host sync; skipped
+        under ``torch.vmap``/``torch.func``/``torch.compile`` and with value checks off."""
+        if self.memory_clip is not None and value_checks_active(clamped):
+            self._note_clamped(int(clamped))
 
     def _note_clamped(self, n: int) -> None:
         if not n:
@@ -297,7 +294,7 @@ class DNCModule(TensorDictModuleBase):
         # plain attributes (not Modules): the state dict and parameters stay those of ``self.dnc``. Recurrent mode
         # sees one minibatch shape (static); step mode sees 16 envs, the 2048-step value pass, varying subsets.
         self._sequence_step = (
-            CompileOrEager(self.dnc.memory_step, "DNCModule recurrent step", dynamic=False) if compile else None
+            CompileOrEager(self.dnc.write_read, "DNCModule recurrent step", dynamic=False) if compile else None
         )
         self._compiled_step = CompileOrEager(self._step, "DNCModule step", dynamic=True) if compile else None
         self.in_key = unravel_key(in_key)
@@ -378,21 +375,23 @@ class DNCModule(TensorDictModuleBase):
         if not self.recurrent_mode:
             check_finite(x, f"DNCModule {self.in_key!r}")
             eager = self._compiled_step is None or is_transformed(x, memory)  # vmap/grad: no compiled code inside
-            out, new_memory = (self._step if eager else self._compiled_step)(x, memory, is_init)
-            self.dnc.count_clamped(new_memory)
+            out, new_memory, clamped = (self._step if eager else self._compiled_step)(x, memory, is_init)
+            self.dnc.note_clamped(clamped)
         else:
             out, new_memory = self._forward_sequence(tensordict, x, memory, is_init)
         tensordict.set(self.out_key, out)
         tensordict.set(self.next_memory_key, new_memory)
         return tensordict
 
-    def _step(self, x: torch.Tensor, memory: torch.Tensor, is_init: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def _step(
+        self, x: torch.Tensor, memory: torch.Tensor, is_init: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Step mode on plain tensors (compiled with ``compile=True``): ``x [*B, D_in]``, ``memory [*B, N, W]``,
-        ``is_init [*B]`` -> ``(e_aug [*B, D_out], M' [*B, N, W])``; the memory is zeroed where ``is_init``.
-        Clamps are counted by the caller (one pass, outside compiled code)."""
+        ``is_init [*B]`` -> ``(e_aug [*B, D_out], M' [*B, N, W], clamped)``; the memory is zeroed where
+        ``is_init``. The caller counts the clamps (outside compiled code)."""
         memory = torch.where(is_init[..., None, None], torch.zeros_like(memory), memory)
-        r, new_memory = self.dnc.memory_step(self.dnc.interface_vectors(x), memory, False)
-        return self.dnc.output(x, r), new_memory
+        r, new_memory, clamped = self.dnc.write_read(self.dnc.interface_vectors(x), memory)
+        return self.dnc.output(x, r), new_memory, clamped
 
     def _forward_sequence(
         self, tensordict: TensorDictBase, x: torch.Tensor, memory: torch.Tensor, is_init: torch.Tensor
@@ -421,16 +420,16 @@ class DNCModule(TensorDictModuleBase):
         # loop over time only for addressing, write and read.
         controls = self.dnc.interface_vectors(x)
         eager = self._sequence_step is None or is_transformed(x, m)
-        step = self.dnc.memory_step if eager else self._sequence_step
-        reads, mems = [], []
+        step = self.dnc.write_read if eager else self._sequence_step
+        reads, mems, clamped = [], [], []
         for t in range(x.shape[tdim]):
             # the reset stays outside the compiled step: inside it, forward + backward measured ~30% slower
             reset = is_init.select(tdim, t)[..., None, None]
             m = torch.where(reset, torch.zeros_like(m), m)
-            r, m = step({k: v.select(tdim, t) for k, v in controls.items()}, m, False)
+            r, m, n = step({k: v.select(tdim, t) for k, v in controls.items()}, m)
             reads.append(r)
             mems.append(m)
+            clamped.append(n)
         out = self.dnc.output(x, torch.stack(reads, dim=tdim))
-        memories = torch.stack(mems, dim=tdim)
-        self.dnc.count_clamped(memories)  # once per sequence, not once per step
-        return out, memories
+        self.dnc.note_clamped(torch.stack(clamped).sum())  # one host sync per sequence, not one per step
+        return out, torch.stack(mems, dim=tdim)
