@@ -125,8 +125,8 @@ class ModelConfig:
     dnc: DNCConfig = field(default_factory=DNCConfig)
     # torch.compile the hot spots that gain from it on CPU: the DNC step (collection, values, and the training loop
     # over time: ~2-3x faster) and the state FNO encoder's maths (~1.4x). Same maths; value checks stay eager.
-    # Costs ~10-20 s of compiling at the start (cached on disk by torch). A failed compilation warns once and runs
-    # eagerly (counted as compile_fallbacks in progress.csv).
+    # Costs seconds of compiling at the first batch (see README "Speed"; torch caches the kernels on disk). A failed
+    # compilation warns once and runs eagerly (counted as compile_fallbacks in progress.csv).
     compile: bool = False
 
 

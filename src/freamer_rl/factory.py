@@ -159,8 +159,7 @@ def build_filter_mix_memory(
         gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
         fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
         dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
-        compile: ``torch.compile`` the refiners' Euler integration, the fuser and the DNC step (each with an eager
-            fallback, :class:`~freamer_rl.layers.compiled.CompileOrEager`).
+        compile: ``torch.compile`` the DNC step (with an eager fallback; :class:`~freamer_rl.layers.dnc.DNCModule`).
         output_dim: ``D_out`` (default ``d``). out_key: where Layer 4 writes ``e_aug``.
         memory_key, is_init_key: DNC state and episode-start keys.
 
@@ -175,14 +174,13 @@ def build_filter_mix_memory(
     steps: list[nn.Module] = []
     refiners = nn.ModuleDict()
     for m in modalities:
-        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m],
-                                          compile=compile)
+        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m])
         steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
     steps.append(
         KeyedModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
     )
     fuser = FNOFuser(num_modalities=len(modalities), dim=dim, modes=fno_modes, residual_scale=fno_residual_scale,
-                     output_norm=fno_output_norm, compile=compile)  # fmt: skip
+                     output_norm=fno_output_norm)  # fmt: skip
     steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
     memory = None
     if dnc:

@@ -42,8 +42,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from freamer_rl.layers.checks import check_finite, is_transformed
-from freamer_rl.layers.compiled import CompileOrEager
+from freamer_rl.layers.checks import check_finite
 from freamer_rl.layers.dedup import dedup_rows
 
 __all__ = ["FlowMatchingRefiner", "cfm_interpolant"]
@@ -100,8 +99,6 @@ class FlowMatchingRefiner(nn.Module):
             ``v ~ 0`` and the refiner is near identity at initialisation.
         deduplicate: in eager mode, integrate each distinct input row once when at least half the rows repeat
             (a constant mission or an all-zero reward history; :mod:`freamer_rl.layers.dedup`). Same maths.
-        compile: run the Euler integration through ``torch.compile`` with dynamic shapes
-            (:class:`~freamer_rl.layers.compiled.CompileOrEager`); eager under ``torch.vmap``/``torch.func``.
 
     The velocity field is ``v_theta(x, t) = MLP([x; t])`` (time concatenated as an extra input, SiLU activations).
     The gate logit is the scalar parameter ``alpha`` (named so optimisers/OGM-GE can single it out).
@@ -120,7 +117,6 @@ class FlowMatchingRefiner(nn.Module):
         num_hidden_layers: int = 2,
         last_layer_scale: float = 1e-2,
         deduplicate: bool = True,
-        compile: bool = False,
     ) -> None:
         super().__init__()
         if dim <= 0 or hidden <= 0:
@@ -144,24 +140,6 @@ class FlowMatchingRefiner(nn.Module):
         layers.append(last)
         self.net = nn.Sequential(*layers)
         self.alpha = nn.Parameter(torch.tensor(float(gate_init)))
-        # a plain attribute (not a Module): parameters and state dict are unchanged
-        self._compiled_integrate = (
-            CompileOrEager(self._integrate_default, "FlowMatchingRefiner", dynamic=True) if compile else None
-        )
-
-    @property
-    def compile_fallbacks(self) -> int:
-        """How often ``compile=True`` fell back to eager execution (0 or 1)."""
-        return self._compiled_integrate.fallbacks if self._compiled_integrate is not None else 0
-
-    def _integrate_default(self, e: torch.Tensor) -> torch.Tensor:
-        return self.integrate(e)
-
-    def _integrate_fast(self, e: torch.Tensor, steps: int | None) -> torch.Tensor:
-        """:meth:`integrate`, compiled for the default step count when ``compile=True`` (outside vmap/grad)."""
-        if self._compiled_integrate is None or (steps is not None and steps != self.steps) or is_transformed(e):
-            return self.integrate(e, steps)
-        return self._compiled_integrate(e)
 
     @property
     def gate(self) -> torch.Tensor:
@@ -215,9 +193,9 @@ class FlowMatchingRefiner(nn.Module):
         check_finite(e, "FlowMatchingRefiner input")
         if self.deduplicate and e.ndim > 1:
             flat = e.reshape(-1, self.dim)
-            x_n = dedup_rows(lambda rows: self._integrate_fast(rows, steps), flat, flat).reshape(e.shape)
+            x_n = dedup_rows(lambda rows: self.integrate(rows, steps), flat, flat).reshape(e.shape)
         else:
-            x_n = self._integrate_fast(e, steps)
+            x_n = self.integrate(e, steps)
         return e + self.gate.to(e.dtype) * (x_n - e)
 
     def cfm_loss(self, e: torch.Tensor, noise_std: float = 1.0) -> torch.Tensor:

@@ -348,8 +348,6 @@ class FNOFuser(nn.Module):
         modes: ``K`` (Table A20: 16; ``<= d//2 + 1``).
         residual_scale: initial value of ``s``.
         output_norm: apply a LayerNorm over ``d`` to the pooled vector (not to ``E_out``).
-        compile: run the maths (after the eager input check) through ``torch.compile`` with dynamic shapes
-            (:class:`~freamer_rl.layers.compiled.CompileOrEager`); eager under ``torch.vmap``/``torch.func``.
 
     Shapes:
         forward: ``E [*B, M, d] -> (fused [*B, d], E_out [*B, M, d])``.
@@ -359,13 +357,7 @@ class FNOFuser(nn.Module):
     """
 
     def __init__(
-        self,
-        num_modalities: int,
-        dim: int,
-        modes: int = 16,
-        residual_scale: float = 0.1,
-        output_norm: bool = False,
-        compile: bool = False,
+        self, num_modalities: int, dim: int, modes: int = 16, residual_scale: float = 0.1, output_norm: bool = False
     ) -> None:
         super().__init__()
         if num_modalities < 1 or dim < 1:
@@ -378,12 +370,6 @@ class FNOFuser(nn.Module):
         self.norm = nn.LayerNorm(dim)
         self.residual_scale = nn.Parameter(torch.tensor(float(residual_scale)))
         self.output_norm = nn.LayerNorm(dim) if output_norm else None
-        self._compiled_fuse = CompileOrEager(self._fuse, "FNOFuser", dynamic=True) if compile else None
-
-    @property
-    def compile_fallbacks(self) -> int:
-        """How often ``compile=True`` fell back to eager execution (0 or 1)."""
-        return self._compiled_fuse.fallbacks if self._compiled_fuse is not None else 0
 
     def forward(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if e.ndim < 2 or tuple(e.shape[-2:]) != (self.num_modalities, self.dim):
@@ -391,11 +377,6 @@ class FNOFuser(nn.Module):
                 f"FNOFuser expects E of shape [*B, M={self.num_modalities}, d={self.dim}]; got {tuple(e.shape)}"
             )
         check_finite(e, "FNOFuser modal_stack")
-        eager = self._compiled_fuse is None or is_transformed(e)
-        return (self._fuse if eager else self._compiled_fuse)(e)
-
-    def _fuse(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The maths of :meth:`forward` on a checked ``E [*B, M, d]``."""
         # [*B, M, d]  IFFT(R_k E^_k) (Eq. A14), as DFT matmuls along d (faster than FFTs for d = 128 on CPU)
         spec = self.spectral.forward_length_first(e.movedim(-1, 0)).movedim(0, -1)
         # [*B, M, d]  W E, the 1x1 mixing across modalities (einsum: 4x faster than a Linear on the transpose)
