@@ -295,7 +295,7 @@ class StateFNOEncoder(nn.Module):
         o = multi_hot @ table  # [L, B', C]
         pointwise = multi_hot @ pointwise_table + self.pointwise.bias  # the 1x1 conv W o
         h = F.gelu(self.spectral.forward_length_first(o) + pointwise)  # Appendix E.2, [L, B', C]
-        flat = h.transpose(0, 1).reshape(h.shape[1], -1)  # [B', L*C] cell-major, as proj expects
+        flat = h.transpose(0, 1).reshape(h.shape[1], self.seq_len * self.channels)  # [B', L*C] cell-major (proj)
         e = self.proj(flat) + self.direction_embed(direction.long().reshape(-1))
         return e.reshape(*batch_shape, self.out_dim)
 
