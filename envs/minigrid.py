@@ -48,6 +48,7 @@ from __future__ import annotations
 
 import difflib
 import logging
+import re
 from typing import Any
 
 import gymnasium
@@ -105,8 +106,32 @@ def minigrid_env_ids() -> list[str]:
     return sorted(k for k in gymnasium.envs.registry if k.startswith(("MiniGrid-", "BabyAI-")))
 
 
+#: MultiRoom sizes minigrid does not register, built on demand for curricula: ``MiniGrid-MultiRoom-N<rooms>-S<size>-v0``
+#: means exactly ``rooms`` rooms of side at most ``size`` (minigrid's own ``N4-S5-v0`` has 6 rooms; its ids win).
+_MULTIROOM_ID = re.compile(r"MiniGrid-MultiRoom-N(\d+)-S(\d+)-v0")
+_MAX_MULTIROOM = (8, 10)  # rooms, room size: beyond this the 25x25 MultiRoom grid cannot place the rooms
+
+
+def register_multiroom(env_id: str) -> bool:
+    """Register ``MiniGrid-MultiRoom-N<n>-S<s>-v0`` with gymnasium if minigrid does not (True when it did).
+
+    Raises ``ValueError`` for sizes MultiRoom cannot build (``1 <= n <= 8``, ``4 <= s <= 10``).
+    """
+    match = _MULTIROOM_ID.fullmatch(env_id)
+    if match is None or env_id in gymnasium.envs.registry:
+        return False
+    rooms, size = int(match[1]), int(match[2])
+    if not (1 <= rooms <= _MAX_MULTIROOM[0] and 4 <= size <= _MAX_MULTIROOM[1]):
+        raise ValueError(
+            f"{env_id}: MultiRoom sizes need 1 <= N <= {_MAX_MULTIROOM[0]} rooms and 4 <= S <= {_MAX_MULTIROOM[1]}"
+        )
+    gymnasium.register(env_id, entry_point="minigrid.envs:MultiRoomEnv",
+                       kwargs={"minNumRooms": rooms, "maxNumRooms": rooms, "maxRoomSize": size})  # fmt: skip
+    return True
+
+
 def _check_env_id(env_id: str) -> None:
-    if env_id in gymnasium.envs.registry:
+    if env_id in gymnasium.envs.registry or register_multiroom(env_id):
         return
     close = difflib.get_close_matches(env_id, minigrid_env_ids(), n=3, cutoff=0.6)
     hint = f"did you mean {', '.join(repr(c) for c in close)}? " if close else ""

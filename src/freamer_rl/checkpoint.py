@@ -53,6 +53,7 @@ __all__ = [
     "resume_checkpoint",
     "save_checkpoint",
     "to_plain",
+    "transfer_weights",
 ]
 
 FORMAT = "freamer_rl/1"  # the "format" entry of a MiniGrid checkpoint
@@ -360,6 +361,28 @@ def check_checkpoint_config(saved: dict, current: dict, path: Path) -> None:
         diffs += _structural_diff(saved.get(section, {}), current.get(section, {}), section)
     if diffs:
         raise CheckpointError(f"checkpoint {path} comes from another config ({'; '.join(diffs[:4])})")
+
+
+def transfer_weights(modules: FreamerModules, source: str | Path, current: dict) -> Path:
+    """Load the model weights of another run (``source``: its directory, whose ``latest`` checkpoint is used, or a
+    checkpoint file) into ``modules``; returns the checkpoint file. ``current`` is this run's config mapping: its
+    ``model`` section must equal the source's (CheckpointError naming the differences otherwise); the env may differ
+    as long as the weights fit (same observation and action shapes)."""
+    source = Path(source)
+    path = latest_checkpoint(source) if source.is_dir() else source
+    if path is None:
+        raise CheckpointError(f"run.init_from: {source} holds no checkpoint (checkpoints/latest is missing)")
+    if not path.is_file():
+        raise CheckpointError(f"run.init_from: no such checkpoint file: {path}")
+    ckpt = load_checkpoint(path)
+    saved = ckpt["config"].get("model") if isinstance(ckpt["config"], dict) else None
+    if not isinstance(saved, dict):
+        raise CheckpointError(f"run.init_from: checkpoint {path} holds no readable model config")
+    diffs = _structural_diff(saved, current.get("model", {}), "model")
+    if diffs:
+        raise CheckpointError(f"run.init_from: checkpoint {path} has another model ({'; '.join(diffs[:4])})")
+    load_model_state(modules, ckpt["model"], path)
+    return path
 
 
 def load_model_state(modules: FreamerModules, state: dict, path: Path) -> None:

@@ -45,6 +45,12 @@ def _parser() -> argparse.ArgumentParser:
         "use another run.name / --run-dir, or delete the old run yourself",
     )
 
+    p_chain = sub.add_parser(
+        "chain", help="train a chain of recipes (a curriculum), each stage starting from the previous one's weights"
+    )
+    p_chain.add_argument("chain", help="path to a chain YAML (freamer_rl.chain)")
+    p_chain.add_argument("overrides", nargs="*", help="dotted overrides of the chain file, e.g. seed=1")
+
     p_eval = sub.add_parser("eval", help="evaluate a checkpoint of any domain")
     p_eval.add_argument("checkpoint", help="a checkpoint .pt file or a run directory (uses its latest checkpoint)")
     p_eval.add_argument("--episodes", type=int, default=20)
@@ -75,6 +81,12 @@ def _run(args: argparse.Namespace) -> int:
         cfg = load_config(args.recipe, args.overrides)
         summary = get_trainer(name, args.recipe).train(cfg, args.run_dir, resume=not args.no_resume)
         logger.info("summary: %s", json.dumps(summary, default=str))
+        return 0
+    if args.command == "chain":
+        from freamer_rl.chain import run_chain
+
+        rows = run_chain(args.chain, args.overrides)
+        logger.info("chain finished: %s", json.dumps(rows, default=str))
         return 0
     if args.command == "eval":
         from freamer_rl.evaluate import evaluate_any

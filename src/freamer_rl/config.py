@@ -182,6 +182,10 @@ class RunConfig:
     threads: int = 1
     device: str = "cpu"
     stop_at_success: float | None = None  # stop early once the windowed success rate reaches this
+    # Transfer: start a fresh run from the model weights of another run (its directory, or a checkpoint file), e.g.
+    # a simpler env of a curriculum. Only the weights: optimiser, frames and statistics start anew. The model
+    # sections of both configs must match; a run resuming its own checkpoint ignores this.
+    init_from: str | None = None
 
 
 @dataclass

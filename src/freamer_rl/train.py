@@ -48,7 +48,7 @@ from freamer_rl import env_registry
 from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT
 from freamer_rl.checkpoint import (  # noqa: F401
     atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
-    load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint,
+    load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint, transfer_weights,
 )
 from freamer_rl.config import ConfigError, FreamerConfig, config_to_dict
 from freamer_rl.config_checks import resolve_device
@@ -209,6 +209,11 @@ class Trainer:
         ckpt_path = resume_checkpoint(self.run_dir, resume, "delete it (--no-resume never deletes a run)")
         if ckpt_path is not None:
             self._resume(ckpt_path)
+            if self.cfg.run.init_from:
+                logger.info("resuming this run's own checkpoint: run.init_from=%s is not applied", self.cfg.run.init_from)
+        elif self.cfg.run.init_from:
+            source = transfer_weights(self.modules, self.cfg.run.init_from, config_to_dict(self.cfg))
+            logger.info("initialised the model from %s (run.init_from)", source)
         # progress.csv = the checkpoint's rows: rows written after it (a kill -9) go, a fresh start truncates
         self._rewrite_progress(self.run_dir / "progress.csv")
         self._write_run_files()
