@@ -209,10 +209,10 @@ def test_parallel_env(start_method):
 # ------------------------------------------------------------------------------------------------------------------
 def test_unknown_env_id():
     with pytest.raises(ValueError) as err:
-        make_minigrid_env("MiniGrid-MultiRoom-N2-S5-v0")
+        make_minigrid_env("MiniGrid-MultiRoom-N2-S4-v9")
     msg = str(err.value)
     assert "\n" not in msg
-    assert "'MiniGrid-MultiRoom-N2-S5-v0'" in msg and "gymnasium.envs.registry" in msg
+    assert "'MiniGrid-MultiRoom-N2-S4-v9'" in msg and "gymnasium.envs.registry" in msg
     assert "MiniGrid-MultiRoom-N2-S4-v0" in msg  # close match suggested
 
 

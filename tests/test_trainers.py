@@ -87,7 +87,8 @@ def test_recipes_name_their_trainer_and_load_with_one_loader():
         with pytest.raises(ConfigError, match="trainer"):
             load_config(path, schema=FreamerConfig)
     for path in sorted(ROOT.glob("recipes/*.yaml")) + sorted(ROOT.glob("recipes/gym/*.yaml")):
-        assert isinstance(load_config(path), FreamerConfig), path
+        if not path.name.endswith(".chain.yaml"):  # chain files are not recipes (tests/test_chain.py)
+            assert isinstance(load_config(path), FreamerConfig), path
     with pytest.raises(ConfigError, match="unknown trainer 'nope'"):
         load_config(None, ["trainer=nope"])
     assert isinstance(load_config(None, ["trainer=health"]), HealthConfig)
