@@ -310,7 +310,7 @@ class Trainer:
         next_value = torch.empty_like(root_value)
         next_value[..., :-1, :] = root_value[..., 1:, :]
         nxt = data["next"][need].select(*keys, strict=False)
-        nxt.set("is_init", torch.zeros(*nxt.shape, 1, dtype=torch.bool, device=nxt.device))  # never an episode start
+        nxt.set("is_init", torch.zeros_like(data["is_init"][need]))  # a next state never starts an episode
         next_value[need] = value(nxt)["state_value"]
         data.set("state_value", root_value)
         data.set(("next", "state_value"), next_value)
@@ -358,7 +358,7 @@ class Trainer:
     def _fallback_counts(self) -> dict[str, int]:
         """Numerical fallbacks: slot-attention NaN guards and DNC memory clamps counted by the layers, optimiser
         steps skipped for a non-finite gradient (this run's count, kept across resumes), and compiled parts that
-        fell back to eager execution (``model.dnc.compile``)."""
+        fell back to eager execution (``model.compile``)."""
         mods = list(self.modules.trunk.modules())
         return {
             "nan_fallbacks": int(sum(int(getattr(m, "nan_fallbacks", 0)) for m in mods)),
