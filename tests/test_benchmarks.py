@@ -66,3 +66,21 @@ def test_gym_benchmark_report_and_resume(tmp_path):
     gym_benchmark.main(args)  # finished runs are not retrained
     assert job.stat().st_mtime_ns == stamp
     assert (tmp_path / "runs" / "freamer_s0" / "checkpoints" / "latest").is_file()  # resumable mid-run too
+
+
+def test_curriculum_benchmark_reports_chain_frames_and_reads_back(tmp_path):
+    import shutil
+
+    import curriculum_benchmark
+
+    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
+    chain = tmp_path / "c.chain.yaml"
+    chain.write_text("name: demo\nstages:\n  - {name: a, recipe: tiny.yaml}\n"
+                     "  - {name: b, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n")
+    out = tmp_path / "out"
+    text = curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])
+    assert "| 0 | a 256 |" in text and "MiniGrid-MultiRoom-N1-S4-v0" in text
+    assert (out / "learning_curve.png").is_file() and (out / "results.csv").read_text().startswith("seed,")
+    stamp = (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime
+    curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])  # read back
+    assert (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime == stamp
