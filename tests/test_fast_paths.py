@@ -188,6 +188,8 @@ def test_compile_or_eager_keeps_bad_input_errors(monkeypatch):
     f = CompileOrEager(lambda x: x.reshape(3), "reshaper")
     with pytest.raises(RuntimeError, match="shape"):
         f(torch.ones(4))
+    assert f.fallbacks == 0 and not f._failed  # the input's error, not the compiler's: compiling stays on
+    assert torch.equal(f(torch.ones(3)), torch.ones(3))
 
 
 # ---------------------------------------------------------------------------------------------------------------

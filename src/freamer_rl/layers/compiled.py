@@ -3,7 +3,8 @@
 Compilation can fail for reasons outside the model (no C++ compiler for the CPU backend, an unsupported
 platform, a torch bug). :class:`CompileOrEager` then logs one warning naming the function and the error, counts
 the fallback in :attr:`CompileOrEager.fallbacks`, and runs the eager function from then on. An error that the
-eager function raises as well (bad input) is the eager function's own and propagates unchanged.
+eager function raises as well (bad input) is the eager function's own: it propagates unchanged and compiling stays
+on.
 """
 
 from __future__ import annotations
@@ -35,19 +36,22 @@ class CompileOrEager:
         self._failed = False
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
-        if not self._failed:
-            if self._compiled is None:
-                self._compiled = torch.compile(self.fn, **self.options)
-            try:
-                return self._compiled(*args, **kwargs)
-            except Exception as err:  # noqa: BLE001 -- any compiler failure: fall back, loudly
-                self._failed = True
-                self._compiled = None
-                self.fallbacks += 1
-                first = (str(err).strip().splitlines() or [type(err).__name__])[0][:300]
-                logger.warning("%s: torch.compile failed (%s: %s); running it eagerly from now on (set "
-                               "model.compile=false to skip compiling)", self.name, type(err).__name__, first)
-        return self.fn(*args, **kwargs)
+        if self._failed:
+            return self.fn(*args, **kwargs)
+        if self._compiled is None:
+            self._compiled = torch.compile(self.fn, **self.options)
+        try:
+            return self._compiled(*args, **kwargs)
+        except Exception as err:  # noqa: BLE001 -- decided below: the compiler's failure or the input's
+            compile_error = err
+        result = self.fn(*args, **kwargs)  # raises the input's own error (compiling stays on) if eager fails too
+        self._failed = True
+        self._compiled = None
+        self.fallbacks += 1
+        first = (str(compile_error).strip().splitlines() or [type(compile_error).__name__])[0][:300]
+        logger.warning("%s: torch.compile failed (%s: %s); running it eagerly from now on (set model.compile=false "
+                       "to skip compiling)", self.name, type(compile_error).__name__, first)
+        return result
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
