@@ -7,7 +7,7 @@ A chain file is YAML::
     output_dir: runs
     overrides: [run.threads=1]               # every stage
     stages:
-      - {name: n2s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [run.total_frames=100000, run.stop_at_success=0.9]}
+      - {name: n2s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [run.stop_at_success=0.9]}
       - {name: n3s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [env.id=MiniGrid-MultiRoom-N3-S4-v0]}
 
 Stage recipes are paths relative to the chain file's folder and must stay inside it. Stage ``k`` trains in
@@ -141,7 +141,8 @@ def _trainer_name(recipe: Path, overrides: list[str]) -> str:
 
 def _write_summary(root: Path, cfg: ChainConfig, rows: list[dict[str, Any]]) -> None:
     root.mkdir(parents=True, exist_ok=True)
-    (root / "chain_summary.json").write_text(json.dumps({"chain": cfg.name, "seed": cfg.seed, "stages": rows}, indent=2))
+    payload = {"chain": cfg.name, "seed": cfg.seed, "stages": rows}
+    (root / "chain_summary.json").write_text(json.dumps(payload, indent=2))
     lines = [f"# Chain {cfg.name} (seed {cfg.seed})", "",
              "| stage | env | frames | frames in the chain | episodes | final success | frames to 95% |",
              "|---|---|---:|---:|---:|---:|---:|"]  # fmt: skip

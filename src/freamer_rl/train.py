@@ -210,7 +210,8 @@ class Trainer:
         if ckpt_path is not None:
             self._resume(ckpt_path)
             if self.cfg.run.init_from:
-                logger.info("resuming this run's own checkpoint: run.init_from=%s is not applied", self.cfg.run.init_from)
+                logger.info("resuming this run's own checkpoint: run.init_from=%s is not applied",
+                            self.cfg.run.init_from)
         elif self.cfg.run.init_from:
             source = transfer_weights(self.modules, self.cfg.run.init_from, config_to_dict(self.cfg))
             logger.info("initialised the model from %s (run.init_from)", source)

@@ -49,7 +49,8 @@ def _probe(width: int, device: torch.device) -> torch.Tensor:
 def distinct_rows(x: torch.Tensor, max_fraction: float = 0.5) -> tuple[torch.Tensor, torch.Tensor] | None:
     """Representatives of the distinct rows of ``x [B, ...]``: ``(first [U], inverse [B])`` with
     ``x[first][inverse]`` equal to ``x`` element for element, or ``None`` when ``U > max_fraction * B``, when
-    ``B < MIN_ROWS``, when a row holds NaN (never equal to itself), or when values may not be read (see the module docstring).
+    ``B < MIN_ROWS``, when a row holds NaN (never equal to itself), or when values may not be read (see the module
+    docstring).
 
     Rows are hashed by one projection on a fixed random vector (float64), then the candidate grouping is verified
     exactly, so a hash collision can only make it return ``None``, never merge two different rows.
