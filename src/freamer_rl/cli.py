@@ -23,6 +23,7 @@ import argparse
 import json
 import logging
 import sys
+from pathlib import Path
 
 from freamer_rl.errors import FreamerError
 
@@ -86,7 +87,9 @@ def _run(args: argparse.Namespace) -> int:
         from freamer_rl.chain import run_chain
 
         rows = run_chain(args.chain, args.overrides)
-        logger.info("chain finished: %s", json.dumps(rows, default=str))
+        last = rows[-1]
+        logger.info("chain finished: %d stages, %d frames, last stage success %s | %s", len(rows),
+                    last["chain_frames"], last["final_success_rate"], Path(last["run_dir"]).parent / "chain_summary.md")
         return 0
     if args.command == "eval":
         from freamer_rl.evaluate import evaluate_any
