@@ -87,9 +87,9 @@ def _run(args: argparse.Namespace) -> int:
         from freamer_rl.chain import run_chain
 
         rows = run_chain(args.chain, args.overrides)
-        last = rows[-1]
-        logger.info("chain finished: %d stages, %d frames, last stage success %s | %s", len(rows),
-                    last["chain_frames"], last["final_success_rate"], Path(last["run_dir"]).parent / "chain_summary.md")
+        last, rate = rows[-1], rows[-1]["final_success_rate"]
+        logger.info("chain finished: %d stages, %d frames, last stage success %s | %s", len(rows), last["chain_frames"],
+                    "n/a" if rate is None else f"{rate:.3f}", Path(last["run_dir"]).parent / "chain_summary.md")
         return 0
     if args.command == "eval":
         from freamer_rl.evaluate import evaluate_any
