@@ -10,7 +10,8 @@ A chain file is YAML::
       - {name: n2s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [run.stop_at_success=0.9]}
       - {name: n3s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [env.id=MiniGrid-MultiRoom-N3-S4-v0]}
 
-Stage recipes are paths relative to the chain file's folder and must stay inside it. Stage ``k`` trains in
+Stage recipes are paths relative to the chain file's folder and must stay inside it; transfer (``run.init_from``)
+is a setting of the MiniGrid / gymnasium trainer, so chains of health recipes stop at stage 2 with one error line. Stage ``k`` trains in
 ``<output_dir>/<name>-s<seed>/<stage name>`` with ``run.init_from`` set to stage ``k-1``'s run directory (transfer:
 weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its ``summary.json`` written after its
 last checkpoint) is read back, an interrupted one resumes from its checkpoint. ``chain_summary.json`` /
