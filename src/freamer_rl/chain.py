@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from freamer_rl.config import VALIDATORS, ConfigError, config_from_dict, load_config, read_recipe
+from freamer_rl.config import VALIDATORS, ConfigError, config_from_dict, load_config, read_recipe, recipe_trainer
 from freamer_rl.rundir import run_name_problem
 
 logger = logging.getLogger(__name__)
@@ -121,7 +121,7 @@ def run_chain(
         if summary is None:
             stage_cfg = load_config(recipe, given)
             logger.info("chain %s: stage %d/%d %s (%s)", cfg.name, i + 1, len(cfg.stages), stage.name, recipe.name)
-            summary = get_trainer(_trainer_name(recipe, given)).train(stage_cfg, run_dir, resume=True)
+            summary = get_trainer(recipe_trainer(recipe, given)).train(stage_cfg, run_dir, resume=True)
         else:
             logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
         total += int(summary["frames"])
@@ -132,12 +132,6 @@ def run_chain(
         previous = run_dir
     _write_summary(root, cfg, rows)
     return rows
-
-
-def _trainer_name(recipe: Path, overrides: list[str]) -> str:
-    from freamer_rl.config import split_trainer
-
-    return split_trainer(read_recipe(recipe, overrides), str(recipe))[0]
 
 
 def _write_summary(root: Path, cfg: ChainConfig, rows: list[dict[str, Any]]) -> None:

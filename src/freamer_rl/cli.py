@@ -75,10 +75,10 @@ def _parser() -> argparse.ArgumentParser:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "train":
-        from freamer_rl.config import load_config, read_recipe, split_trainer
+        from freamer_rl.config import load_config, recipe_trainer
         from freamer_rl.trainers import get_trainer
 
-        name, _ = split_trainer(read_recipe(args.recipe, args.overrides), args.recipe)
+        name = recipe_trainer(args.recipe, args.overrides)
         cfg = load_config(args.recipe, args.overrides)
         summary = get_trainer(name, args.recipe).train(cfg, args.run_dir, resume=not args.no_resume)
         logger.info("summary: %s", json.dumps(summary, default=str))
@@ -105,11 +105,11 @@ def _run(args: argparse.Namespace) -> int:
 
         return health_main(args.health_args, prog="freamer-rl health")
     if args.command == "params":
-        from freamer_rl.config import load_config, read_recipe, split_trainer
+        from freamer_rl.config import load_config, recipe_trainer
         from freamer_rl.params import OFFLINE_NOTE, format_parameter_table
         from freamer_rl.trainers import get_trainer
 
-        name, _ = split_trainer(read_recipe(args.recipe, args.overrides), args.recipe)
+        name = recipe_trainer(args.recipe, args.overrides)
         table = get_trainer(name, args.recipe).params(load_config(args.recipe, args.overrides))
         sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n" + OFFLINE_NOTE + "\n")
         return 0

@@ -374,6 +374,11 @@ def split_trainer(data: dict, source: str = "recipe") -> tuple[str, dict]:
     return trainer, {k: v for k, v in data.items() if k != TRAINER_KEY}
 
 
+def recipe_trainer(path: str | Path, overrides: list[str] | None = None) -> str:
+    """The trainer a recipe names (its ``trainer:`` key after ``overrides``; :data:`DEFAULT_TRAINER` without one)."""
+    return split_trainer(read_recipe(path, overrides), str(path))[0]
+
+
 def load_config(
     path: str | Path | None = None, overrides: list[str] | None = None, schema: type | None = None
 ) -> Any:

@@ -31,6 +31,7 @@ from freamer_rl.health.config import (
 )
 from freamer_rl.health.config import explore_probs as _explore_probs
 from freamer_rl.health.encoders import HealthEncoder, make_health_encoder
+from freamer_rl.tdmodule import KeyedModule
 from freamer_rl.world_model.rssm import WorldModel, gaussian_kl
 
 __all__ = [
@@ -145,7 +146,7 @@ def build_actor_value(latent_dim: int, hidden: int, num_actions: int = NUM_ACTIO
                       ) -> tuple[ProbabilisticActor, ValueOperator]:  # fmt: skip
     """Categorical actor (``num_actions`` logits) and value MLPs on ``"latent"`` ``[*B, D + S]``."""
     actor = ProbabilisticActor(
-        TensorDictModule(MLP(in_features=latent_dim, out_features=num_actions, num_cells=[hidden, hidden],
+        KeyedModule(MLP(in_features=latent_dim, out_features=num_actions, num_cells=[hidden, hidden],
                              activation_class=nn.SiLU), in_keys=["latent"], out_keys=["logits"]),  # fmt: skip
         in_keys=["logits"],
         distribution_class=torch.distributions.Categorical,

@@ -45,7 +45,7 @@ from collections.abc import Mapping
 
 import torch
 from tensordict import TensorDict, TensorDictBase, unravel_key
-from tensordict.nn import TensorDictModule, TensorDictModuleBase, TensorDictSequential
+from tensordict.nn import TensorDictModuleBase, TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import set_recurrent_mode
@@ -55,6 +55,7 @@ from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.losses import FreamerAuxLoss
+from freamer_rl.tdmodule import KeyedModule
 from freamer_rl.world_model.encoder import StatelessStepMixin, StepEncoder
 from freamer_rl.world_model.rssm import mlp, symlog
 
@@ -370,7 +371,7 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         self.in_keys = [self.imu_key, self.hr_key, self.is_init_key, self.memory_key]
         self.out_keys = [self.out_key, self.next_memory_key]
         self.fm_noise_std = fm_noise_std
-        stage1 = TensorDictModule(FoundationStage1(HealthStage1(dim, heads, hr_tokens, hidden), symlog_inputs),
+        stage1 = KeyedModule(FoundationStage1(HealthStage1(dim, heads, hr_tokens, hidden), symlog_inputs),
                                   in_keys=[self.imu_key, self.hr_key],
                                   out_keys=[("embed", "imu"), ("embed", "heart_rate")])  # fmt: skip
         layers, refiners, fuser, dnc = build_filter_mix_memory(

@@ -72,20 +72,11 @@ def distinct_rows(x: torch.Tensor, max_fraction: float = 0.5) -> tuple[torch.Ten
     return first, inverse
 
 
-def dedup_rows(fn: Callable[..., torch.Tensor], key: torch.Tensor, *args: torch.Tensor) -> torch.Tensor:
-    """``fn(*args)`` for row-wise ``fn``, evaluated once per distinct row of ``key``.
-
-    Args:
-        fn: maps tensors ``[B, ...]`` to a tensor ``[B, ...]``, each output row depending only on the same row of
-            every input.
-        key: ``[B, ...]``: rows equal in ``key`` must be equal in every arg (usually ``key`` is the only arg).
-        args: the inputs of ``fn``, each ``[B, ...]``.
-
-    Returns:
-        ``fn(*args)`` (computed on the distinct rows and gathered when at least half the rows repeat).
-    """
-    found = distinct_rows(key)
+def dedup_rows(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """``fn(x)`` for a row-wise ``fn`` (``[B, ...] -> [B, ...]``, output row ``i`` depends on input row ``i`` only),
+    evaluated once per distinct row of ``x`` and gathered when at least half the rows repeat."""
+    found = distinct_rows(x)
     if found is None:
-        return fn(*args)
+        return fn(x)
     first, inverse = found
-    return fn(*(a[first] for a in args))[inverse]
+    return fn(x[first])[inverse]

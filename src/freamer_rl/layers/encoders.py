@@ -103,7 +103,7 @@ class RewardEncoder(nn.Module):
         batch_shape = rewards.shape[:-1]
         x = rewards.reshape(-1, self.history).to(self.proj.weight.dtype)
         # sparse rewards repeat the same (mostly all-zero) history: encode each distinct row once (eager only)
-        return dedup_rows(self._encode, x, x).reshape(*batch_shape, self.out_dim)
+        return dedup_rows(self._encode, x).reshape(*batch_shape, self.out_dim)
 
     def _encode(self, x: torch.Tensor) -> torch.Tensor:
         """``x [b, H]`` -> ``[b, out_dim]``."""

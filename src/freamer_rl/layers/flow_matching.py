@@ -193,7 +193,7 @@ class FlowMatchingRefiner(nn.Module):
         check_finite(e, "FlowMatchingRefiner input")
         if self.deduplicate and e.ndim > 1:
             flat = e.reshape(-1, self.dim)
-            x_n = dedup_rows(lambda rows: self.integrate(rows, steps), flat, flat).reshape(e.shape)
+            x_n = dedup_rows(lambda rows: self.integrate(rows, steps), flat).reshape(e.shape)
         else:
             x_n = self.integrate(e, steps)
         return e + self.gate.to(e.dtype) * (x_n - e)
