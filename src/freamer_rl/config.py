@@ -85,6 +85,10 @@ class FlowConfig:
     gate_init: dict[str, float] = field(
         default_factory=lambda: {"vision": -5.0, "state": -3.0, "language": -3.0, "reward": -1.0}
     )
+    # Score-based adaptive complexity (App. G.4): each refiner picks its Euler step count per row from these choices
+    # (paper: [1, 2, 3, 5, 7, 10]) by a straight-through Gumbel-Softmax on E_t ||v(x, t)||^2. Empty: fixed ``steps``.
+    adaptive_steps: list[int] = field(default_factory=list)
+    adaptive_tau: float = 1.0
 
 
 @dataclass
@@ -189,6 +193,64 @@ class RunConfig:
 
 
 @dataclass
+class LanguageRewardConfig:
+    """R_lang = s_match * r_scale + b_goal + b_prox (App. A.2, Eq. A10) from the parsed mission (App. A.1)."""
+
+    weight: float = 0.0  # lambda_lang (Table A20: 0.2); 0 = off
+    parser: str = "regex"  # regex | llm (a causal LM through transformers, from llm_path)
+    llm_path: str | None = None  # local directory of e.g. Qwen2.5-1.5B-Instruct (config, tokenizer, weights)
+    r_scale: float = 0.1  # per step while the current target is in view
+    goal_bonus: float = 1.0  # once per target reached (key carried, door opened, goal reached)
+    proximity_bonus: float = 0.1  # per cell of shortest-path distance gained towards the current target
+
+
+@dataclass
+class NoveltyConfig:
+    """Count-based novelty bonus of the NovelD family (``freamer_rl.exploration.NoveltyBonus``)."""
+
+    weight: float = 0.0  # 0 = off
+    alpha: float = 0.5  # NovelD: bonus = max(N(s') - alpha * N(s), 0) on the first visit of s' in an episode
+    keys: list[str] = field(default_factory=lambda: ["grid", "direction"])  # observation entries hashed
+
+
+@dataclass
+class ShapingConfig:
+    """Reward terms added to the env reward for PPO (App. G.1-G.2, A.5). Success is still judged on the env reward.
+
+    shaped = r_env + decay * (sum of weight * term) - time_penalty * (1 + success_rate), with decay =
+    max(1 - 1.25 * success_rate, 0) when ``adaptive`` (G.2), else 1.
+    """
+
+    adaptive: bool = False
+    language: LanguageRewardConfig = field(default_factory=LanguageRewardConfig)
+    vision_language: float = 0.0  # lambda_VL (Table A20: 0.1): cosine of the refined vision (or state) and language
+    curiosity: float = 0.0  # lambda_intrinsic (Table A20: 0.2): forward-model prediction error on the fused embedding
+    novelty: NoveltyConfig = field(default_factory=NoveltyConfig)
+    time_penalty: float = 0.0  # alpha of P_time (App. A.5; 0.02 recommended with the language reward)
+
+
+@dataclass
+class SuccessBufferConfig:
+    """Successful episodes replayed into PPO (App. G.3) with V-trace targets and truncated importance weights."""
+
+    enabled: bool = False
+    mix: float = 0.25  # fraction of each minibatch's sequences drawn from the buffer
+    capacity: int = 512  # sequences kept (oldest dropped first)
+    rho_clip: float = 1.0  # truncation of the importance weights (V-trace rho-bar = c-bar)
+
+
+@dataclass
+class OGMConfig:
+    """OGM-GE gate modulation driven by each modality's FM-loss convergence (Section 4.3.5, Appendix K)."""
+
+    mode: str = "none"  # none | A (gate logits only, lr x lr_scale) | B (all FM parameters)
+    alpha: float = 0.5  # modulation strength: coefficient 1 - tanh(alpha * relu(discrepancy - 1))
+    lr_scale: float = 10.0  # Mode A learning-rate amplification of the gate logits
+    noise: bool = True  # GE: Gaussian noise with the gradient's own std
+    ema: float = 0.9  # smoothing of the per-modality FM losses
+
+
+@dataclass
 class FreamerConfig:
     env: EnvConfig = field(default_factory=EnvConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -196,6 +258,9 @@ class FreamerConfig:
     collector: CollectorConfig = field(default_factory=CollectorConfig)
     logging: LoggingConfig = field(default_factory=LoggingConfig)
     run: RunConfig = field(default_factory=RunConfig)
+    shaping: ShapingConfig = field(default_factory=ShapingConfig)
+    success_buffer: SuccessBufferConfig = field(default_factory=SuccessBufferConfig)
+    ogm: OGMConfig = field(default_factory=OGMConfig)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -147,6 +147,21 @@ RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "ppo.lambda_cl": (_non_negative, ">= 0"),
     "ppo.lambda_smooth": (_non_negative, ">= 0"),
     "model.flow.noise_std": (_non_negative, ">= 0"),
+    "model.flow.adaptive_tau": (_positive, "> 0"),
+    "shaping.language.weight": (_non_negative, ">= 0"),
+    "shaping.language.r_scale": (_non_negative, ">= 0"),
+    "shaping.language.goal_bonus": (_non_negative, ">= 0"),
+    "shaping.language.proximity_bonus": (_non_negative, ">= 0"),
+    "shaping.vision_language": (_non_negative, ">= 0"),
+    "shaping.curiosity": (_non_negative, ">= 0"),
+    "shaping.novelty.weight": (_non_negative, ">= 0"),
+    "shaping.novelty.alpha": (_non_negative, ">= 0"),
+    "shaping.time_penalty": (_non_negative, ">= 0"),
+    "success_buffer.mix": (lambda v: 0 < v < 1, "in (0, 1)"),
+    "success_buffer.rho_clip": (_positive, "> 0"),
+    "ogm.alpha": (_positive, "> 0"),
+    "ogm.lr_scale": (_positive, "> 0"),
+    "ogm.ema": (lambda v: 0 <= v < 1, "in [0, 1)"),
 }
 _INT_DEFAULT_RANGE = (lambda v: v >= 1, ">= 1")
 _FLOAT_DEFAULT_RANGE = (lambda v: True, "")
@@ -221,5 +236,31 @@ def check_names(cfg: FreamerConfig) -> None:
     for m in cfg.model.flow.gate_init:
         if m not in MODALITIES:
             raise ConfigError(f"model.flow.gate_init: unknown modality '{m}'")
+    _check_machinery_names(cfg)
     if cfg.logging.backend not in ("csv", "wandb", "tensorboard"):
         raise ConfigError(f"logging.backend: expected csv, wandb or tensorboard, got {cfg.logging.backend!r}")
+
+
+#: Step counts a refiner may choose from (App. G.4 lists 1, 2, 3, 5, 7, 10).
+_MAX_ADAPTIVE_STEPS = 32
+
+
+def _check_machinery_names(cfg: FreamerConfig) -> None:
+    """Choices of the training machinery: parser kind, OGM-GE mode, adaptive step counts, hashed novelty keys."""
+    lang = cfg.shaping.language
+    if lang.parser not in ("regex", "llm"):
+        raise ConfigError(f"shaping.language.parser: expected 'regex' or 'llm', got {lang.parser!r}")
+    if lang.weight and lang.parser == "llm" and not lang.llm_path:
+        raise ConfigError("shaping.language.llm_path: parser 'llm' needs the local directory of the model weights "
+                          "(e.g. Qwen2.5-1.5B-Instruct), or use shaping.language.parser=regex")  # fmt: skip
+    if cfg.ogm.mode not in ("none", "A", "B"):
+        raise ConfigError(f"ogm.mode: expected none, A or B, got {cfg.ogm.mode!r}")
+    steps = cfg.model.flow.adaptive_steps
+    if any(not 1 <= s <= _MAX_ADAPTIVE_STEPS for s in steps) or len(set(steps)) != len(steps):
+        raise ConfigError(f"model.flow.adaptive_steps: got {steps}, expected distinct step counts in "
+                          f"[1, {_MAX_ADAPTIVE_STEPS}] (paper: [1, 2, 3, 5, 7, 10]; [] = fixed model.flow.steps)")
+    if len(steps) == 1:
+        raise ConfigError(f"model.flow.adaptive_steps: got {steps}: give two or more choices, or set "
+                          "model.flow.steps and leave adaptive_steps empty")  # fmt: skip
+    if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
+        raise ConfigError("shaping.novelty.keys: give at least one observation entry to hash")

@@ -65,6 +65,7 @@ from freamer_rl.optim import StepStats, optimizer_step
 from freamer_rl.runfiles import git_commit, make_metrics_logger, write_run_files  # noqa: F401 (git_commit re-exported)
 from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm, run_name_problem, write_rows_csv
 from freamer_rl.sequences import sequence_replay_buffer, split_sequences
+from freamer_rl.shaping import SHAPED_REWARD, RewardShaper, env_transforms
 
 logger = logging.getLogger(__name__)
 
@@ -97,7 +98,9 @@ def make_batched_env(cfg: FreamerConfig, primers: list, seed: int, num_envs: int
         base = adapter.make_batched_env(cfg.env.id, n, **env_options(cfg))
     else:
         base = SerialEnv(n, functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg)))
-    env = TransformedEnv(base, Compose(InitTracker(), StepCounter(), RewardSum(), *[p.clone() for p in primers]))
+    # shaping transforms (a novelty bonus) after RewardSum: episode returns stay the env's own
+    transforms = [InitTracker(), StepCounter(), RewardSum(), *env_transforms(cfg), *[p.clone() for p in primers]]
+    env = TransformedEnv(base, Compose(*transforms))
     env.set_seed(seed)
     return env
 
@@ -168,6 +171,12 @@ class Trainer:
             functional=False,
         ).to(self.device)
         self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=None, average_gae=False)
+        # reward shaping (App. G.1-G.2, A.5): PPO trains on ("next", "shaped_reward"); success uses the env reward
+        self.shaper = RewardShaper(cfg, self.modules.modalities, cfg.model.embed_dim,
+                                   _action_count(self.modules.actor), self.device)  # fmt: skip
+        if self.shaper.active:
+            self.gae.set_keys(reward=SHAPED_REWARD)
+        self._shaping_logs: dict[str, float] = {}
         self.aux_loss = FreamerAuxLoss(
             self.modules.refiners,
             lambda_fm=p.lambda_fm,
@@ -238,6 +247,7 @@ class Trainer:
             torch.set_rng_state(ckpt["torch_rng"])
             if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
                 self.step_stats.load_state_dict(ckpt["ppo_steps"])
+            self.shaper.load_state_dict(ckpt.get("shaping", {}))
         except CheckpointError:
             raise
         except (KeyError, TypeError, ValueError, RuntimeError) as err:  # a hand-edited or foreign payload
@@ -258,6 +268,7 @@ class Trainer:
             "config": config_to_dict(self.cfg),
             "torch_rng": torch.get_rng_state(),
             "ppo_steps": self.step_stats.state_dict(),
+            "shaping": self.shaper.state_dict(),
             "format": CHECKPOINT_FORMAT,
             "trainer": "minigrid_ppo",  # freamer-rl eval dispatches on it (freamer_rl.trainers.TRAINERS)
         }
@@ -315,6 +326,8 @@ class Trainer:
         next_value[need] = value(nxt)["state_value"]
         data.set("state_value", root_value)
         data.set(("next", "state_value"), next_value)
+        if self.shaper.active:
+            self._shaping_logs = self.shaper(data, self.stats.success_rate)
         return self.gae(data)
 
     # -- optimisation ---------------------------------------------------------------------------------------
@@ -457,6 +470,7 @@ class Trainer:
             "fps": fps,
             **losses,
             **{f"gate_{m}": g for m, g in self.modules.gates().items()},
+            **self._shaping_logs,
             **self._fallback_counts(),
         }
 
@@ -503,6 +517,13 @@ class Trainer:
             min(self.stats.episodes, self.stats.window), format_duration(self.wall_time), fps, self.run_dir,
         )  # fmt: skip
         return summary
+
+
+def _action_count(actor) -> int:
+    """Discrete actions of the policy head's spec, or the action's size for a continuous one (curiosity's input)."""
+    spec = actor.spec["action"] if "action" in actor.spec.keys() else actor.spec
+    n = getattr(getattr(spec, "space", None), "n", None)
+    return int(n) if n is not None else int(spec.shape[-1]) if len(spec.shape) else 1
 
 
 def train(cfg: FreamerConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:

@@ -30,6 +30,7 @@ from torch import nn
 
 from freamer_rl.errors import FreamerError
 from freamer_rl.layers.encoders import pixels_to_unit
+from freamer_rl.torchvision_compat import import_torchvision_safely
 
 logger = logging.getLogger(__name__)
 
@@ -59,80 +60,30 @@ def _first_line(exc: BaseException, limit: int = 240) -> str:
     return line if len(line) <= limit else line[: limit - 3] + "..."
 
 
-# torchvision's C++ operators whose fake (meta) kernels torchvision registers at import time even when its C++
-# extension failed to load (torchvision/_meta_registrations.py guards the other registrations with _has_ops(), not
-# these two). Schemas as in torchvision/csrc/ops/nms.cpp and quantized/cpu/qnms_kernel.cpp.
-_TORCHVISION_UNGUARDED_OPS = {
-    "nms": "nms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor",
-    "qnms": "qnms(Tensor dets, Tensor scores, float iou_threshold) -> Tensor",
-}
-_torchvision_schema_lib = None  # keeps the declared schemas alive for the process
-
-
-def _declare_torchvision_schemas() -> None:
-    """Declare the schemas of torchvision's unguarded ops so that ``import torchvision`` completes.
-
-    Only used after ``import torchvision`` failed with ``operator torchvision::nms does not exist``: that happens when
-    torchvision's C++ extension cannot load (PyPI's Linux torchvision wheels are CUDA builds needing
-    ``libtorch_cuda.so``, absent from a CPU torch). torchvision itself is built to run without its C++ ops; only two
-    fake-kernel registrations are unguarded. open_clip uses torchvision's Python transforms, never these ops; a
-    call to ``torchvision.ops.nms`` still fails loudly (the schema has no kernel).
-    """
-    global _torchvision_schema_lib
-    if _torchvision_schema_lib is not None:
-        return
-    lib = torch.library.Library("torchvision", "FRAGMENT")
-    for name, schema in _TORCHVISION_UNGUARDED_OPS.items():
-        if not hasattr(torch.ops.torchvision, name):
-            lib.define(schema)
-    _torchvision_schema_lib = lib
-
-
-def _forget_modules(*packages: str) -> None:
-    """Drop partially imported packages from ``sys.modules`` so that a second import starts clean."""
-    import sys
-
-    for name in [m for m in sys.modules if m.split(".")[0] in packages]:
-        del sys.modules[name]
-
-
-def _is_torchvision_missing_op(exc: BaseException) -> bool:
-    text = str(exc)
-    return isinstance(exc, RuntimeError) and "operator torchvision::" in text and "does not exist" in text
-
-
 def import_open_clip():
     """Import ``open_clip`` lazily; raise :class:`ClipNotInstalledError` with one clear line when it is unusable.
 
-    When the installed torchvision cannot load its C++ operators (a CUDA build of torchvision next to a CPU torch,
-    the only torchvision PyPI has for Linux), the import is retried once after :func:`_declare_torchvision_schemas`;
-    that is logged as a warning.
+    torchvision is imported first through :func:`freamer_rl.torchvision_compat.import_torchvision_safely`, which
+    copes with a torchvision that cannot load its C++ operators (a CUDA build of torchvision next to a CPU torch, the
+    only torchvision PyPI has for Linux) by declaring two operator schemas and logging a warning.
+
+    Returns:
+        The ``open_clip`` module.
     """
-    for attempt in (1, 2):
-        try:
-            import open_clip  # noqa: PLC0415  (optional dependency)
-        except ModuleNotFoundError as exc:
-            if exc.name == "open_clip":
-                raise ClipNotInstalledError(f"open_clip is not installed: {_INSTALL_HINT}") from exc
-            raise ClipNotInstalledError(
-                f"open_clip is installed but its dependency {exc.name!r} is missing ({_INSTALL_HINT}; {_TV_HINT})"
-            ) from exc
-        except (ImportError, OSError, RuntimeError) as exc:
-            if attempt == 1 and _is_torchvision_missing_op(exc):
-                logger.warning(
-                    "torchvision's C++ operators could not load (%s; likely a CUDA torchvision build beside torch "
-                    "%s): declaring the schemas of torchvision::nms/qnms so that torchvision's Python parts import; "
-                    "open_clip does not use those operators, and calling them raises",
-                    _first_line(exc), torch.__version__,
-                )
-                _forget_modules("open_clip", "torchvision")
-                _declare_torchvision_schemas()
-                continue
-            raise ClipNotInstalledError(
-                f"open_clip is installed but cannot be imported ({_first_line(exc)}); {_TV_HINT}"
-            ) from exc
-        return open_clip
-    raise AssertionError("unreachable")  # the loop either returns or raises
+    try:
+        import_torchvision_safely()
+        import open_clip  # noqa: PLC0415  (optional dependency)
+    except ModuleNotFoundError as exc:
+        if exc.name == "open_clip":
+            raise ClipNotInstalledError(f"open_clip is not installed: {_INSTALL_HINT}") from exc
+        raise ClipNotInstalledError(
+            f"open_clip is installed but its dependency {exc.name!r} is missing ({_INSTALL_HINT}; {_TV_HINT})"
+        ) from exc
+    except (ImportError, OSError, RuntimeError) as exc:
+        raise ClipNotInstalledError(
+            f"open_clip is installed but cannot be imported ({_first_line(exc)}); {_TV_HINT}"
+        ) from exc
+    return open_clip
 
 
 class ClipBackbone(nn.Module):
