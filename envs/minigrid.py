@@ -13,6 +13,7 @@ key                    dtype / shape           meaning
 ``"mission"``          NonTensor ``str``       raw mission string (left out with ``include_mission=False``)
 ``"reward_history"``   float32 ``[H]``         last ``H`` rewards, most recent last, zeros after reset
 ``"pixels"``           uint8 ``[8V, 8V, 3]``   RGB agent view, tile size 8 (only with ``pixels=True``)
+``"lang_reward"``      float32 ``[1]``         R_lang of Eq. A10 (only with ``language_reward={...}``, see below)
 =====================  ======================  ==================================================================
 
 ``grid`` is indexed ``[x, y]`` (MiniGrid's convention; the agent sits at ``x = V // 2, y = V - 1`` facing up) while
@@ -21,6 +22,10 @@ key                    dtype / shape           meaning
 
 plus ``"reward"`` float32 ``[1]`` and ``"done"`` / ``"terminated"`` / ``"truncated"`` bool ``[1]``; the action is
 ``Categorical(n=env.action_space.n)`` (7 for MiniGrid).
+
+``lang_reward`` (:mod:`freamer_rl_envs.minigrid_language`) is 0 after a reset; at ``("next", "lang_reward")`` it is
+the language-grounded reward of the step that produced it. It is an observation, not part of ``"reward"``: the
+trainer's shaping adds ``weight * lang_reward``.
 
 ``reward_history`` at ``("next", ...)`` already contains the reward of the step that produced it: after step ``t``,
 ``td["next", "reward_history"][-1] == td["next", "reward"]``. The history of the root is therefore the history of
@@ -62,6 +67,7 @@ from torchrl.envs import EnvBase
 
 from freamer_rl.env_registry import EnvAdapter
 from freamer_rl.text import WordTokenizer
+from freamer_rl_envs.minigrid_language import LanguageReward, language_reward_option
 
 logger = logging.getLogger(__name__)
 
@@ -155,6 +161,9 @@ class MiniGridEnv(EnvBase):
             entries (step_mdp, stacking, batched envs) costs about a third of the per-step time, so training loops
             that only read ``"mission_tokens"`` can pass ``False``.
         vocab: mission vocabulary (defaults to :data:`MINIGRID_VOCAB`).
+        language_reward: ``None`` (off, no cost) or a plain dict ``{"parser": "regex" | "llm", "llm_path",
+            "r_scale", "goal_bonus", "proximity_bonus"}`` (missing keys take
+            :data:`~freamer_rl_envs.minigrid_language.LANGUAGE_REWARD_DEFAULTS`): write ``"lang_reward"``.
 
     Raises:
         ValueError: unknown env id, an env without MiniGrid's ``image``/``direction``/``mission`` observations,
@@ -174,6 +183,7 @@ class MiniGridEnv(EnvBase):
         device: torch.device | str = "cpu",
         include_mission: bool = True,
         vocab: tuple[str, ...] | list[str] = MINIGRID_VOCAB,
+        language_reward: dict[str, Any] | None = None,
     ) -> None:
         if int(reward_history) != reward_history or reward_history < 0:
             raise ValueError(f"reward_history: expected an integer >= 0, got {reward_history!r}")
@@ -187,6 +197,8 @@ class MiniGridEnv(EnvBase):
         self.reward_history = int(reward_history)
         self.include_mission = bool(include_mission)
         self.tokenizer = WordTokenizer(vocab, max_len=int(max_mission_tokens))
+        self._language = None if language_reward is None else LanguageReward(language_reward)  # option checked first
+        self._lang_value = 0.0
         self._env = gymnasium.make(env_id)
         self._unwrapped = self._env.unwrapped
         space = self._env.observation_space
@@ -251,6 +263,8 @@ class MiniGridEnv(EnvBase):
             )
         if self.reward_history:
             obs["reward_history"] = Unbounded(shape=(self.reward_history,), dtype=torch.float32, device=self.device)
+        if self._language is not None:
+            obs["lang_reward"] = Unbounded(shape=(1,), dtype=torch.float32, device=self.device)
         if self.pixels:
             p_shape = (v_h * PIXEL_TILE_SIZE, v_w * PIXEL_TILE_SIZE, 3)
             obs["pixels"] = Bounded(low=0, high=255, shape=p_shape, dtype=torch.uint8, device=self.device)
@@ -298,6 +312,8 @@ class MiniGridEnv(EnvBase):
         if self.reward_history:
             self._history = [0.0] * self.reward_history
         self._note_mission(obs["mission"])
+        if self._language is not None:
+            self._lang_value = self._language.reset(self._unwrapped, self._mission, obs["image"])
         return obs
 
     def _advance(self, action: int) -> tuple[dict[str, Any], float, bool, bool]:
@@ -310,6 +326,8 @@ class MiniGridEnv(EnvBase):
             del history[0]
             history.append(reward)
         self._note_mission(obs["mission"])
+        if self._language is not None:
+            self._lang_value = self._language.step(self._unwrapped, obs["image"])
         return obs, reward, bool(terminated), bool(truncated)
 
     def _observation(self, obs: dict[str, Any]) -> dict[str, Any]:
@@ -322,6 +340,8 @@ class MiniGridEnv(EnvBase):
             out["mission"] = NonTensorData(self._mission, batch_size=_EMPTY_SIZE, device=self._out_device)
         if self.reward_history:
             out["reward_history"] = torch.tensor(self._history, dtype=torch.float32)
+        if self._language is not None:
+            out["lang_reward"] = torch.tensor((self._lang_value,), dtype=torch.float32)
         if self.pixels:
             out["pixels"] = torch.from_numpy(self.frame())
         return out
@@ -394,6 +414,7 @@ def make_minigrid_env(
     max_mission_tokens: int = 16,
     device: torch.device | str = "cpu",
     include_mission: bool = True,
+    language_reward: dict[str, Any] | None = None,
 ) -> EnvBase:
     """Build one unbatched :class:`MiniGridEnv` (the ``minigrid`` entry point of the ``freamer_rl.envs`` group).
 
@@ -411,6 +432,7 @@ def make_minigrid_env(
         max_mission_tokens=max_mission_tokens,
         device=device,
         include_mission=include_mission,
+        language_reward=language_reward,
     )
 
 
@@ -423,6 +445,8 @@ def _minigrid_options(cfg) -> dict[str, Any]:
         "max_mission_tokens": cfg.env.max_mission_tokens,
         # the raw mission string costs ~40% of a step in TorchRL's non-tensor handling; training reads tokens
         "include_mission": False,
+        # R_lang of the parsed mission (shaping.language; None when its weight is 0)
+        "language_reward": language_reward_option(cfg),
     }
 
 

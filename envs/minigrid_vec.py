@@ -32,7 +32,8 @@ class MiniGridVecEnv(EnvBase):
         env_id: a registered MiniGrid / BabyAI gymnasium id.
         num_envs: ``N >= 1``.
         seed: if given, seeds the first reset of every sub-env (chained as ``SerialEnv.set_seed`` does).
-        pixels, reward_history, max_mission_tokens: as for :class:`~freamer_rl_envs.minigrid.MiniGridEnv`.
+        pixels, reward_history, max_mission_tokens, language_reward: as for
+            :class:`~freamer_rl_envs.minigrid.MiniGridEnv`.
         device: must be the CPU (the trainer collects on the CPU and moves batches to the policy's device).
     """
 
@@ -49,6 +50,7 @@ class MiniGridVecEnv(EnvBase):
         max_mission_tokens: int = 16,
         include_mission: bool = False,
         device: torch.device | str = "cpu",
+        language_reward: dict[str, Any] | None = None,
     ) -> None:
         if int(num_envs) != num_envs or num_envs < 1:
             raise ValueError(f"num_envs: expected an integer >= 1, got {num_envs!r}")
@@ -62,7 +64,7 @@ class MiniGridVecEnv(EnvBase):
         n = int(num_envs)
         self.cores = [
             MiniGridEnv(env_id, pixels=pixels, reward_history=reward_history, max_mission_tokens=max_mission_tokens,
-                        include_mission=False)
+                        include_mission=False, language_reward=language_reward)
             for _ in range(n)
         ]  # fmt: skip
         super().__init__(device="cpu", batch_size=torch.Size([n]))
@@ -81,6 +83,8 @@ class MiniGridVecEnv(EnvBase):
         }
         if one.reward_history:
             self._buffers["reward_history"] = np.zeros((n, one.reward_history), dtype=np.float32)
+        if one._language is not None:
+            self._buffers["lang_reward"] = np.zeros((n, 1), dtype=np.float32)
         if one.pixels:
             self._buffers["pixels"] = np.zeros((n, *obs["pixels"].shape), dtype=np.uint8)
         if seed is not None:
@@ -97,6 +101,8 @@ class MiniGridVecEnv(EnvBase):
         buf["mission_tokens"][i] = core._mission_tokens.numpy()
         if "reward_history" in buf:
             buf["reward_history"][i] = core._history
+        if "lang_reward" in buf:
+            buf["lang_reward"][i, 0] = core._lang_value
         if "pixels" in buf:
             buf["pixels"][i] = core.frame()
 

@@ -79,6 +79,20 @@ BAD = [
     (["env.reward_history=0"], "env.reward_history"),  # the default modalities include reward
     (["env.max_mission_tokens=0"], "env.max_mission_tokens"),
     (["collector.num_collectors=0"], "collector.num_collectors"),
+    (["shaping.language.parser=gpt"], "shaping.language.parser"),
+    (["shaping.language.weight=0.2", "shaping.language.parser=llm"], "shaping.language.llm_path"),
+    (["shaping.language.weight=-1"], "shaping.language.weight"),
+    (["shaping.time_penalty=-0.1"], "shaping.time_penalty"),
+    (["shaping.novelty.weight=0.1", "shaping.novelty.keys=[]"], "shaping.novelty.keys"),
+    (["model.modalities=[state]", "env.reward_history=0", "shaping.vision_language=0.1"], "shaping.vision_language"),
+    (["success_buffer.mix=1"], "success_buffer.mix"),
+    (["success_buffer.capacity=0"], "success_buffer.capacity"),
+    (["success_buffer.rho_clip=0"], "success_buffer.rho_clip"),
+    (["ogm.mode=C"], "ogm.mode"),
+    (["ogm.ema=1"], "ogm.ema"),
+    (["model.flow.adaptive_steps=[1, 1, 2]"], "model.flow.adaptive_steps"),
+    (["model.flow.adaptive_steps=[4]"], "model.flow.adaptive_steps"),
+    (["model.flow.adaptive_steps=[0, 2]"], "model.flow.adaptive_steps"),
 ]
 
 

@@ -262,5 +262,12 @@ def _check_machinery_names(cfg: FreamerConfig) -> None:
     if len(steps) == 1:
         raise ConfigError(f"model.flow.adaptive_steps: got {steps}: give two or more choices, or set "
                           "model.flow.steps and leave adaptive_steps empty")  # fmt: skip
+    if cfg.ogm.mode != "none" and not cfg.ppo.lambda_fm:
+        raise ConfigError(f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE is driven by the FM losses and ppo.lambda_fm "
+                          "is 0; set ppo.lambda_fm > 0 or ogm.mode=none")  # fmt: skip
+    mods = set(cfg.model.modalities)
+    if cfg.shaping.vision_language and not ("language" in mods and mods & {"vision", "state"}):
+        raise ConfigError(f"shaping.vision_language: got {cfg.shaping.vision_language}, but R_VL needs the language "
+                          f"modality and vision or state in model.modalities {cfg.model.modalities}; set it to 0")
     if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
-        raise ConfigError("shaping.novelty.keys: give at least one observation entry to hash")
+        raise ConfigError("shaping.novelty.keys: got [], give at least one observation entry to hash")

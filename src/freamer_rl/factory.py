@@ -95,6 +95,8 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
     # Layers 2-4: flow-matching refiners, FNO fusion, DNC memory (the shared trunk builder).
     layers, refiners, fuser, dnc = build_filter_mix_memory(
         modalities, d, flow_hidden=cfg.flow.hidden, flow_steps=cfg.flow.steps,
+        flow_adaptive_steps=tuple(getattr(cfg.flow, "adaptive_steps", None) or ()) or None,
+        flow_tau=float(getattr(cfg.flow, "adaptive_tau", 1.0)),
         gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
         fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
         dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
@@ -125,6 +127,8 @@ def build_filter_mix_memory(
     flow_hidden: int,
     flow_steps: int,
     gate_init: Mapping[str, float],
+    flow_adaptive_steps: Sequence[int] | None = None,
+    flow_tau: float = 1.0,
     fno_modes: int,
     fno_residual_scale: float,
     fno_output_norm: bool = False,
@@ -156,6 +160,8 @@ def build_filter_mix_memory(
     Args:
         modalities: modality names ``m`` (keys ``("embed", m)``, ``("refined", m)``).
         dim: embedding width ``d``. flow_hidden, flow_steps: velocity MLP width and Euler steps of each refiner.
+        flow_adaptive_steps, flow_tau: step-count choices and Gumbel-Softmax temperature of the score-based
+            adaptive complexity (Appendix G.4; ``None``/empty: off, every refiner takes ``flow_steps`` steps).
         gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
         fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
         dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
@@ -174,7 +180,8 @@ def build_filter_mix_memory(
     steps: list[nn.Module] = []
     refiners = nn.ModuleDict()
     for m in modalities:
-        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m])
+        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m],
+                                          adaptive_steps=flow_adaptive_steps, tau=flow_tau)  # fmt: skip
         steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
     steps.append(
         KeyedModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])

@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 import torch
@@ -67,6 +67,7 @@ def optimizer_step(
     stats: StepStats | None = None,
     *,
     foreach: bool | None = None,
+    before_step: Callable[[], None] | None = None,
 ) -> torch.Tensor:
     """Zero the gradients, ``loss.backward()``, clip the total gradient norm of ``params`` at ``max_grad_norm``
     (``None``: no clipping, the norm is still measured), then ``optimizer.step()`` -- unless the norm is not finite,
@@ -76,6 +77,9 @@ def optimizer_step(
         loss: scalar tensor ``[]`` to minimise.
         params: the parameters whose gradients are clipped (those of ``optimizer``).
         foreach: passed to ``clip_grad_norm_`` (True: the fused multi-tensor kernel for many small tensors).
+        before_step: called after clipping and just before ``optimizer.step()``, only when the step is taken (the
+            gradients are final and finite): e.g. :meth:`freamer_rl.ogm.OGMGE.modulate` sets per-group learning
+            rates and adds its gradient-enhancement noise there.
 
     Returns the total gradient norm before clipping (a 0-dim tensor; NaN/inf when the step was skipped).
     """
@@ -88,6 +92,8 @@ def optimizer_step(
         stats = _UNNAMED
     stats.steps += 1
     if torch.isfinite(grad_norm):
+        if before_step is not None:
+            before_step()
         optimizer.step()
     else:
         stats.record_skip(float(grad_norm))

@@ -61,6 +61,7 @@ from freamer_rl.metrics import (  # noqa: F401
     SUCCESS_TARGET, EpisodeStats, ProgressReporter, format_duration, format_rate, plot_learning_curve,
     quiet_library_logs,
 )
+from freamer_rl.ogm import OGMGE
 from freamer_rl.optim import StepStats, optimizer_step
 from freamer_rl.runfiles import git_commit, make_metrics_logger, write_run_files  # noqa: F401 (git_commit re-exported)
 from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm, run_name_problem, write_rows_csv
@@ -196,8 +197,13 @@ class Trainer:
             p.frames_per_batch // p.sequence_length, p.minibatch_size // p.sequence_length, device=self.device
         )
         self.params = [q for q in self.modules.actor_value.parameters() if q.requires_grad]
+        # OGM-GE (Section 4.3.5, App. K): a parameter group per modality's gate (Mode A) or refiner (Mode B)
+        o = cfg.ogm
+        self.ogm = None if o.mode == "none" else OGMGE(self.modules.refiners, mode=o.mode, alpha=o.alpha,
+                                                       lr_scale=o.lr_scale, noise=o.noise, ema=o.ema)  # fmt: skip
+        groups = self.params if self.ogm is None else self.ogm.param_groups(p.lr, self.params)
         # fused Adam / foreach clipping: ~4x less optimiser overhead for the ~90 small parameter tensors
-        self.optimizer = torch.optim.Adam(self.params, lr=p.lr, eps=p.adam_eps, fused=True)
+        self.optimizer = torch.optim.Adam(groups, lr=p.lr, eps=p.adam_eps, fused=True)
         self.step_stats = StepStats("PPO")
         self.frames = 0
         self.batches = 0
@@ -255,7 +261,7 @@ class Trainer:
         try:
             self.optimizer.load_state_dict(ckpt["optimizer"])
             for group in self.optimizer.param_groups:  # the optimiser state keeps its moments; the config sets lr/eps
-                group["lr"], group["eps"] = self.cfg.ppo.lr, self.cfg.ppo.adam_eps
+                group["lr"], group["eps"] = self.cfg.ppo.lr * group.get("lr_scale", 1.0), self.cfg.ppo.adam_eps
             self.frames = int(ckpt["frames"])
             self.batches = int(ckpt["batches"])
             self.stats.load_state_dict(ckpt["stats"])
@@ -265,6 +271,8 @@ class Trainer:
             if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
                 self.step_stats.load_state_dict(ckpt["ppo_steps"])
             self.shaper.load_state_dict(ckpt.get("shaping", {}))
+            if self.ogm is not None and ckpt.get("ogm"):
+                self.ogm.load_state_dict(ckpt["ogm"])
         except CheckpointError:
             raise
         except (KeyError, TypeError, ValueError, RuntimeError) as err:  # a hand-edited or foreign payload
@@ -286,6 +294,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "ppo_steps": self.step_stats.state_dict(),
             "shaping": self.shaper.state_dict(),
+            "ogm": self.ogm.state_dict() if self.ogm is not None else None,
             "format": CHECKPOINT_FORMAT,
             "trainer": "minigrid_ppo",  # freamer-rl eval dispatches on it (freamer_rl.trainers.TRAINERS)
         }
@@ -350,10 +359,12 @@ class Trainer:
     # -- optimisation ---------------------------------------------------------------------------------------
     def _update(self, data: TensorDictBase) -> dict[str, float]:
         p = self.cfg.ppo
+        lr = p.lr
         if p.lr_schedule == "linear":  # lr decays to 0 at run.total_frames (from the frames done, so resumes match)
             lr = p.lr * max(1.0 - self.frames / self.cfg.run.total_frames, 0.0)
             for group in self.optimizer.param_groups:
-                group["lr"] = lr
+                group["lr"] = lr * group.get("lr_scale", 1.0)
+        modulate = None if self.ogm is None else functools.partial(self.ogm.modulate, self.optimizer, lr)
         # the minibatches need the trunk's inputs, the action, its log-prob, advantage and value target: "next"
         # (GAE is done) and the trunk's intermediate outputs (recomputed on every minibatch) would only be copied
         seqs = split_sequences(data.exclude("next", *self.modules.trunk.out_keys), p.sequence_length)
@@ -378,7 +389,9 @@ class Trainer:
                     if k in aux_td.keys():
                         total = total + aux_td[k]
                 grad_norm = optimizer_step(total, self.optimizer, self.params, p.max_grad_norm, self.step_stats,
-                                           foreach=True)  # a non-finite gradient is skipped and counted
+                                           foreach=True, before_step=modulate)  # non-finite: skipped, counted
+                if self.ogm is not None:  # each modality's FM-loss convergence drives its coefficient
+                    self.ogm.observe({m: aux_td[f"fm_{m}"] for m in self.modules.refiners})
                 logs = {
                     "loss_total": total.detach(),
                     "grad_norm": grad_norm,
@@ -527,8 +540,20 @@ class Trainer:
             **losses,
             **{f"gate_{m}": g for m, g in self.modules.gates().items()},
             **self._shaping_logs,
+            **(self.ogm.metrics() if self.ogm is not None else {}),
+            **self._parser_logs(),
+            **{f"fm_steps_{m}": float(r.last_steps) for m, r in self.modules.refiners.items() if r.adaptive_steps},
             **self._fallback_counts(),
         }
+
+    def _parser_logs(self) -> dict[str, float]:
+        """Mission-parser cache hit rate and LLM fallbacks (App. A.1) of this process's parsers, with R_lang on."""
+        if not self.cfg.shaping.language.weight:
+            return {}
+        from freamer_rl.mission import parser_stats
+
+        stats = parser_stats()
+        return {"parser_hit_rate": float(stats["hit_rate"]), "parser_fallbacks": float(stats["fallbacks"])}
 
     def _rewrite_progress(self, path: Path) -> None:
         """Replace progress.csv with ``self.rows`` atomically (columns of the last row; empty file without rows)."""

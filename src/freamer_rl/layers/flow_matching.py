@@ -32,20 +32,43 @@ field is ``v*(x, t) = E[x_1 - x_0 | x_t = x]``, whose flow transports the noisy 
 We use plain (independent-pair) CFM rather than OT-CFM: OT-CFM re-samples the (x_0, x_1) coupling through a
 mini-batch optimal-transport plan, which would re-pair a noisy point with a *different* sample's clean embedding
 and destroy the denoising target.
+
+Score-based adaptive complexity (Appendix G.4, optional: ``adaptive_steps``)
+---------------------------------------------------------------------------
+"Complexity = E_t[||s_theta(x, t, c)||^2] determines the number of FM steps via Gumbel-Softmax selection from
+{1, 2, 3, 5, 7, 10}". The velocity field plays the role of the score ``s_theta``; per row (see
+:meth:`FlowMatchingRefiner.complexity` and :meth:`FlowMatchingRefiner.step_selection`)
+
+    c(x)   = (1/3) sum_{t in {1/4, 1/2, 3/4}} ||v_theta(x, t)||^2 / d       (detached: a difficulty feature)
+    logits = Linear(1 -> K)(log(c(x) + 1e-6))                             K = len(choices)
+    y      = onehot(argmax(logits + g)) + p - stopgrad(p),  p = softmax((logits + g) / tau)
+    x_N    = sum_k y_k * Euler(x, n_k)                                    (Eq. 2 with n_k steps)
+
+``y`` is a hard one-hot in the forward pass (every row takes exactly one step count) with the straight-through
+Gumbel-Softmax gradient. The Gumbel noise ``g`` is drawn only in train mode (``module.training``); in eval mode
+``g = 0`` and the choice is the deterministic argmax. The PPO trainer keeps the policy in eval mode for both
+collection and update, so the step count chosen at collection is the one recomputed at the update and the stored
+log-probabilities match. All K integrations are computed for every row and mixed by ``y`` (no host syncs and no
+Python branches on values: ``torch.vmap``/``torch.compile`` keep working), so the cost is that of
+``sum(choices) + 3`` velocity evaluations.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
-from freamer_rl.layers.checks import check_finite
+from freamer_rl.layers.checks import check_finite, is_transformed
 from freamer_rl.layers.dedup import dedup_rows
 
 __all__ = ["FlowMatchingRefiner", "cfm_interpolant"]
+
+#: Times at which the complexity E_t ||v_theta(x, t)||^2 / d is evaluated (Appendix G.4).
+COMPLEXITY_TIMES = (0.25, 0.5, 0.75)
 
 
 def _time_column(t: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -99,9 +122,17 @@ class FlowMatchingRefiner(nn.Module):
             ``v ~ 0`` and the refiner is near identity at initialisation.
         deduplicate: in eager mode, integrate each distinct input row once when at least half the rows repeat
             (a constant mission or an all-zero reward history; :mod:`freamer_rl.layers.dedup`). Same maths.
+        adaptive_steps: step-count choices ``n_k`` for the score-based adaptive complexity (Appendix G.4, e.g.
+            ``(1, 2, 3, 5, 7, 10)``); ``None`` or empty: off (always ``steps``; no selector, same state_dict).
+        tau: Gumbel-Softmax temperature of the straight-through gradient (the forward choice is hard).
 
     The velocity field is ``v_theta(x, t) = MLP([x; t])`` (time concatenated as an extra input, SiLU activations).
     The gate logit is the scalar parameter ``alpha`` (named so optimisers/OGM-GE can single it out).
+
+    With ``adaptive_steps`` the module also has ``selector`` (``Linear(1, K)``: weight 0 and a +1 bias on the choice
+    nearest ``steps`` at initialisation, so an untrained eval-mode refiner takes about ``steps`` steps) and two
+    detached 0-d buffers for logging, written by every eager forward: ``last_steps`` (mean chosen step count)
+    and ``expected_steps`` (mean of ``sum_k softmax(logits / tau)_k n_k``, without the Gumbel noise).
 
     Shapes:
         forward: ``e [*B, d] -> e_hat [*B, d]``.
@@ -117,6 +148,8 @@ class FlowMatchingRefiner(nn.Module):
         num_hidden_layers: int = 2,
         last_layer_scale: float = 1e-2,
         deduplicate: bool = True,
+        adaptive_steps: Sequence[int] | None = None,
+        tau: float = 1.0,
     ) -> None:
         super().__init__()
         if dim <= 0 or hidden <= 0:
@@ -140,6 +173,28 @@ class FlowMatchingRefiner(nn.Module):
         layers.append(last)
         self.net = nn.Sequential(*layers)
         self.alpha = nn.Parameter(torch.tensor(float(gate_init)))
+        if not (math.isfinite(tau) and tau > 0):
+            raise ValueError(f"tau must be a finite positive float; got {tau}")
+        self.tau = float(tau)
+        self.adaptive_steps: tuple[int, ...] | None = None
+        self.selector: nn.Linear | None = None
+        if adaptive_steps:
+            self._init_adaptive(tuple(int(n) for n in adaptive_steps))
+
+    def _init_adaptive(self, choices: tuple[int, ...]) -> None:
+        """Build the step selector and the logging buffers (Appendix G.4); see the class docstring."""
+        if min(choices) < 1 or len(set(choices)) != len(choices):
+            raise ValueError(f"adaptive_steps must be distinct integers >= 1; got {choices}")
+        self.adaptive_steps = choices
+        self.selector = nn.Linear(1, len(choices))
+        nearest = min(range(len(choices)), key=lambda k: (abs(choices[k] - self.steps), choices[k]))
+        with torch.no_grad():
+            self.selector.weight.zero_()
+            self.selector.bias.zero_()
+            self.selector.bias[nearest] = 1.0
+        self.register_buffer("choice_steps", torch.tensor(choices, dtype=torch.get_default_dtype()), persistent=False)
+        self.register_buffer("last_steps", torch.zeros(()), persistent=False)
+        self.register_buffer("expected_steps", torch.zeros(()), persistent=False)
 
     @property
     def gate(self) -> torch.Tensor:
@@ -181,22 +236,88 @@ class FlowMatchingRefiner(nn.Module):
             x = x + self.velocity(x, i / n) / n
         return x
 
+    def complexity(self, x: torch.Tensor) -> torch.Tensor:
+        """Score-based complexity (Appendix G.4) ``c(x) = mean_t ||v_theta(x, t)||^2 / d`` over
+        :data:`COMPLEXITY_TIMES`, per row: ``x [*B, d] -> [*B]``. Computed without gradients (a feature of the
+        step selector, not a quantity to optimise)."""
+        with torch.no_grad():
+            return torch.stack([self.velocity(x, t).pow(2).mean(-1) for t in COMPLEXITY_TIMES]).mean(0)
+
+    def step_selection(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Straight-through Gumbel-Softmax choice of the step count per row (Appendix G.4).
+
+        Args:
+            x: ``[*B, d]`` flow start points (the embeddings).
+
+        Returns:
+            ``(y, probs)``, both ``[*B, K]``: ``y`` is an exact one-hot in the forward pass with the gradient of
+            ``softmax((logits + g) / tau)`` (``g`` Gumbel noise in train mode only, 0 in eval mode); ``probs =
+            softmax(logits / tau)`` (noise-free, for logging).
+
+        Train mode draws random numbers: under ``torch.vmap`` it needs ``randomness="different"`` (eval mode does
+        not draw, so TorchRL's default vmap works).
+        """
+        if self.selector is None:
+            raise RuntimeError("step_selection needs a refiner built with adaptive_steps")
+        logits = self.selector(torch.log(self.complexity(x) + 1e-6).unsqueeze(-1))
+        noisy = logits
+        if self.training:  # Gumbel(0, 1) = -log(Exp(1)); eval mode: deterministic argmax
+            noisy = logits - torch.empty_like(logits).exponential_().clamp_min(1e-20).log()
+        soft = torch.softmax(noisy / self.tau, dim=-1)
+        index = noisy.argmax(dim=-1, keepdim=True)
+        hard = (torch.arange(logits.shape[-1], device=logits.device) == index).to(soft.dtype)
+        return hard + (soft - soft.detach()), torch.softmax(logits.detach() / self.tau, dim=-1)
+
+    def _adaptive_integrate(self, e: torch.Tensor) -> torch.Tensor:
+        """``[*B, d] -> [*B, d + 2]``: ``cat[x_N, n_chosen, n_expected]`` with ``x_N = sum_k y_k Euler(e, n_k)``.
+
+        The two step-count columns travel with ``x_N`` so that :func:`dedup_rows` gathers them back per row.
+        """
+        y, probs = self.step_selection(e)
+        x_n = sum(y[..., k : k + 1] * self.integrate(e, n) for k, n in enumerate(self.adaptive_steps))
+        n = self.choice_steps.to(e.dtype)
+        chosen = (y.detach() * n).sum(-1, keepdim=True)
+        expected = (probs * n).sum(-1, keepdim=True)
+        return torch.cat([x_n, chosen, expected], dim=-1)
+
+    def _record_steps(self, counts: torch.Tensor) -> None:
+        """Write the batch means of ``counts [*B, 2]`` (chosen, expected) into ``last_steps``/``expected_steps``.
+
+        In-place copies (no ``.item()``, fine under ``torch.compile``); skipped under ``torch.vmap``/``torch.func``,
+        whose per-sample values must not leak into the module.
+        """
+        if counts.numel() == 0:  # an empty batch chose nothing
+            return
+        means = counts.detach().reshape(-1, 2).mean(0)
+        if is_transformed(means) and not torch.compiler.is_compiling():
+            return
+        with torch.no_grad():
+            self.last_steps.copy_(means[0])
+            self.expected_steps.copy_(means[1])
+
     def forward(self, e: torch.Tensor, steps: int | None = None) -> torch.Tensor:
         """Refine ``e [*B, d]`` into ``e_hat = e + sigmoid(alpha) (x_N - e)`` (Eq. 3), shape ``[*B, d]``.
 
-        ``steps`` overrides the number of Euler steps for this call (adaptive FM complexity, Section 3.6).
+        ``steps`` overrides the number of Euler steps for this call (and the adaptive choice, if any). With
+        ``adaptive_steps`` and ``steps=None``, ``x_N`` is the per-row adaptive integration (Appendix G.4).
         A NaN/Inf in ``e`` raises ``ValueError`` in eager mode; under ``torch.vmap``/``torch.func``/``torch.compile``
         the forward is sync-free and the check is skipped (same maths; see :mod:`freamer_rl.layers.checks`).
         """
         if e.shape[-1] != self.dim:
             raise ValueError(f"e must have last dim {self.dim} (the refiner's dim); got shape {tuple(e.shape)}")
         check_finite(e, "FlowMatchingRefiner input")
+        adaptive = self.adaptive_steps is not None and steps is None
+        flow = self._adaptive_integrate if adaptive else (lambda rows: self.integrate(rows, steps))
         if self.deduplicate and e.ndim > 1:
-            flat = e.reshape(-1, self.dim)
-            x_n = dedup_rows(lambda rows: self.integrate(rows, steps), flat).reshape(e.shape)
+            # duplicates share one selection (and, in train mode, one Gumbel draw)
+            width = self.dim + 2 if adaptive else self.dim
+            out = dedup_rows(flow, e.reshape(-1, self.dim)).reshape(*e.shape[:-1], width)
         else:
-            x_n = self.integrate(e, steps)
-        return e + self.gate.to(e.dtype) * (x_n - e)
+            out = flow(e)
+        if adaptive:
+            self._record_steps(out[..., self.dim :])
+            out = out[..., : self.dim]
+        return e + self.gate.to(e.dtype) * (out - e)
 
     def cfm_loss(self, e: torch.Tensor, noise_std: float = 1.0) -> torch.Tensor:
         """Denoising conditional flow matching loss (Eq. A13); see the module docstring for the exact formulation.
@@ -219,4 +340,5 @@ class FlowMatchingRefiner(nn.Module):
         return (self.velocity(x_t, t) - u).pow(2).mean()
 
     def extra_repr(self) -> str:
-        return f"dim={self.dim}, steps={self.steps}"
+        adaptive = f", adaptive_steps={self.adaptive_steps}, tau={self.tau}" if self.adaptive_steps else ""
+        return f"dim={self.dim}, steps={self.steps}{adaptive}"
