@@ -60,6 +60,7 @@ import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
+from torchrl.modules import set_recurrent_mode
 
 from freamer_rl.sequences import split_sequences
 
@@ -441,3 +442,63 @@ def weighted_ppo_loss(loss_td: TensorDictBase, weights: torch.Tensor) -> dict[st
         if key not in out and not key.startswith("loss_") and torch.is_tensor(value) and value.numel() == 1:
             out[key] = value.detach()
     return out
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# The trainer's side
+# ----------------------------------------------------------------------------------------------------------------
+class SuccessReplay:
+    """What :class:`freamer_rl.train.Trainer` does with the buffer: store each batch's successful episodes after
+    training on it, and mix corrected replayed sequences into every minibatch (``success_buffer`` recipe section).
+
+    The buffer is not part of checkpoints (a DNC state per stored step makes it tens of MB): a resumed run refills
+    it from the successes it collects next.
+    """
+
+    def __init__(self, modules, cfg, success_fn, device: torch.device, reward_key: NestedKey) -> None:
+        self.modules, self.cfg, self.success_fn, self.reward_key = modules, cfg, success_fn, reward_key
+        self.buffer = SuccessBuffer(cfg.success_buffer.capacity, device)
+
+    @classmethod
+    def from_config(cls, cfg, modules, device: torch.device, reward_key: NestedKey) -> SuccessReplay | None:
+        """None when ``success_buffer.enabled`` is false; ConfigError when the env adapter cannot judge success."""
+        if not cfg.success_buffer.enabled:
+            return None
+        from freamer_rl import env_registry
+        from freamer_rl.config import ConfigError
+
+        success_fn = env_registry.get_adapter(cfg.env.adapter).success
+        if success_fn is None:
+            raise ConfigError(f"success_buffer.enabled: the '{cfg.env.adapter}' adapter does not judge episode "
+                              "success (EnvAdapter.success is None); turn the buffer off")  # fmt: skip
+        return cls(modules, cfg, success_fn, device, reward_key)
+
+    def mix(self, onpolicy: TensorDictBase) -> TensorDictBase:
+        """``onpolicy [S, L]`` plus ``success_buffer.mix`` of the result drawn from the buffer and corrected
+        (:func:`correct_replay`), with per-step ``"loss_weight"`` (:func:`mix_minibatch`)."""
+        mix = self.cfg.success_buffer.mix
+        replay = self.buffer.sample(max(1, round(onpolicy.shape[0] * mix / (1 - mix))))
+        if replay is not None:
+            replay = correct_replay(replay, log_prob_fn=self._log_prob, value_fn=self._value, gamma=self.cfg.ppo.gamma,
+                                    rho_clip=self.cfg.success_buffer.rho_clip, reward_key=self.reward_key)  # fmt: skip
+        return mix_minibatch(onpolicy, replay)
+
+    @torch.no_grad()
+    def _log_prob(self, td: TensorDictBase) -> torch.Tensor:
+        """log pi_k of the stored actions: one recurrent trunk pass (written into ``td``) and the policy head."""
+        with set_recurrent_mode(True):
+            self.modules.trunk(td)
+        return self.modules.actor.get_dist(td).log_prob(td["action"])
+
+    @torch.no_grad()
+    def _value(self, td: TensorDictBase) -> torch.Tensor:
+        """V of the replayed steps (the trunk's keys are already in ``td``: value head only)."""
+        return self.modules.critic(td)["state_value"]
+
+    def store(self, data: TensorDictBase) -> int:
+        """Add the sequences of ``data [*B, T]`` that hold steps of successful episodes; returns the buffer size."""
+        mask = success_step_mask(data, self.success_fn)
+        if mask.any():
+            self.buffer.add(replay_sequences(data, mask, self.cfg.ppo.sequence_length,
+                                             drop=self.modules.trunk.out_keys, reward_key=self.reward_key))  # fmt: skip
+        return len(self.buffer)

@@ -67,9 +67,7 @@ from freamer_rl.runfiles import git_commit, make_metrics_logger, write_run_files
 from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm, run_name_problem, write_rows_csv
 from freamer_rl.sequences import sequence_replay_buffer, split_sequences
 from freamer_rl.shaping import SHAPED_REWARD, RewardShaper, env_transforms
-from freamer_rl.success_buffer import (
-    SuccessBuffer, correct_replay, mix_minibatch, replay_sequences, success_step_mask, weighted_ppo_loss,
-)
+from freamer_rl.success_buffer import SuccessReplay, weighted_ppo_loss
 
 logger = logging.getLogger(__name__)
 
@@ -183,7 +181,8 @@ class Trainer:
         if self.shaper.active:
             self.gae.set_keys(reward=SHAPED_REWARD)
         self._shaping_logs: dict[str, float] = {}
-        self.success_buffer = self._make_success_buffer()
+        # App. G.3: successful episodes replayed with an off-policy correction (None when the recipe leaves it off)
+        self.replay = SuccessReplay.from_config(cfg, self.modules, self.device, ("next", self.gae.tensor_keys.reward))
         self.aux_loss = FreamerAuxLoss(
             self.modules.refiners,
             lambda_fm=p.lambda_fm,
@@ -224,17 +223,6 @@ class Trainer:
         logger.info("run dir %s | %s trainable parameters%s | device %s", self.run_dir,
                     f"{sum(q.numel() for q in self.params):,}", f" ({frozen:,} frozen)" if frozen else "", self.device)
 
-    def _make_success_buffer(self) -> SuccessBuffer | None:
-        """The success buffer of App. G.3 when the recipe turns it on (the adapter must judge success)."""
-        cfg = self.cfg.success_buffer
-        if not cfg.enabled:
-            return None
-        self._success_fn = env_registry.get_adapter(self.cfg.env.adapter).success
-        if self._success_fn is None:
-            raise ConfigError(f"success_buffer.enabled: the '{self.cfg.env.adapter}' adapter does not judge episode "
-                              "success (EnvAdapter.success is None); turn the buffer off")  # fmt: skip
-        return SuccessBuffer(cfg.capacity, self.device)
-
     # -- bookkeeping ----------------------------------------------------------------------------------------
     def _open_run_dir(self, resume: bool) -> None:
         """Resume from the latest checkpoint (or refuse to overwrite one), then make the files match the state."""
@@ -257,6 +245,10 @@ class Trainer:
     def _resume(self, path: Path) -> None:
         ckpt = load_checkpoint(path)
         check_checkpoint_config(ckpt["config"], config_to_dict(self.cfg), path)
+        saved_ogm = (ckpt["config"].get("ogm") or {}).get("mode", "none")
+        if saved_ogm != self.cfg.ogm.mode:  # OGM-GE's parameter groups shape the optimiser state
+            raise CheckpointError(f"checkpoint {path} was trained with ogm.mode={saved_ogm}, this config has "
+                                  f"ogm.mode={self.cfg.ogm.mode}; resume with the same mode")  # fmt: skip
         load_model_state(self.modules, ckpt["model"], path)
         try:
             self.optimizer.load_state_dict(ckpt["optimizer"])
@@ -376,12 +368,12 @@ class Trainer:
         for _ in range(p.epochs):
             for _ in range(max(1, seqs.shape[0] // rb.batch_size)):
                 mb = rb.sample()
-                if self.success_buffer is not None:
-                    mb = mix_minibatch(mb, self._replay_part(rb.batch_size))
+                if self.replay is not None:
+                    mb = self.replay.mix(mb)
                 with set_recurrent_mode(True):
                     mb = self.modules.trunk(mb)
                 loss_td = self.ppo_loss(mb)
-                if self.success_buffer is not None:  # per-step losses weighted by the truncated IS weights
+                if self.replay is not None:  # per-step losses weighted by the truncated IS weights
                     loss_td = weighted_ppo_loss(loss_td, mb["loss_weight"])
                 aux_td = self.aux_loss(mb)
                 total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
@@ -402,41 +394,9 @@ class Trainer:
                     sums[k] = sums.get(k, 0.0) + float(v.detach() if torch.is_tensor(v) else v)
                 count += 1
         out = {k: v / count for k, v in sums.items()}
-        if self.success_buffer is not None:  # after the epochs: a batch's own successes are replayed from the next
-            self._store_successes(data)
-            out["success_buffer_size"] = float(len(self.success_buffer))
+        if self.replay is not None:  # after the epochs: a batch's own successes are replayed from the next
+            out["success_buffer_size"] = float(self.replay.store(data))
         return out
-
-    # -- success buffer (App. G.3) ----------------------------------------------------------------------------
-    def _replay_part(self, onpolicy_sequences: int) -> TensorDictBase | None:
-        """Sequences from the success buffer for one minibatch (``mix`` of the mixed minibatch), corrected for
-        being off-policy: V-trace targets, log-probs of the current policy, truncated importance weights."""
-        mix = self.cfg.success_buffer.mix
-        replay = self.success_buffer.sample(max(1, round(onpolicy_sequences * mix / (1 - mix))))
-        if replay is None:
-            return None
-        return correct_replay(replay, log_prob_fn=self._replay_log_prob, value_fn=self._replay_value,
-                              gamma=self.cfg.ppo.gamma, rho_clip=self.cfg.success_buffer.rho_clip,
-                              reward_key=("next", self.gae.tensor_keys.reward))  # fmt: skip
-
-    @torch.no_grad()
-    def _replay_log_prob(self, td: TensorDictBase) -> torch.Tensor:
-        """log pi_k of the stored actions: one recurrent trunk pass (written into ``td``) and the policy head."""
-        with set_recurrent_mode(True):
-            self.modules.trunk(td)
-        return self.modules.actor.get_dist(td).log_prob(td["action"])
-
-    @torch.no_grad()
-    def _replay_value(self, td: TensorDictBase) -> torch.Tensor:
-        """V of the replayed steps (the trunk's keys are already in ``td``: value head only)."""
-        return self.modules.critic(td)["state_value"]
-
-    def _store_successes(self, data: TensorDictBase) -> None:
-        mask = success_step_mask(data, self._success_fn)
-        if mask.any():
-            self.success_buffer.add(replay_sequences(data, mask, self.cfg.ppo.sequence_length,
-                                                     drop=self.modules.trunk.out_keys,
-                                                     reward_key=("next", self.gae.tensor_keys.reward)))  # fmt: skip
 
     def _fallback_counts(self) -> dict[str, int]:
         """Numerical fallbacks: slot-attention NaN guards and DNC memory clamps counted by the layers, optimiser
