@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import hashlib
+from pathlib import Path
 import json
 import logging
 import subprocess
@@ -402,3 +403,23 @@ def test_factory_shares_parsers_and_sums_stats(fresh_factory, model_dirs):
     assert stats["hit_rate"] == 0.5
     with pytest.raises(ValueError, match="llm, regex"):
         make_mission_parser("gpt", VOCAB)
+
+
+def test_trainer_with_the_llm_parser_counts_its_fallbacks(fresh_factory, model_dirs, tmp_path):
+    """The whole path in training: the env loads the local LLM once, parses each new mission through it (a random
+    model answers garbage: the regex parser takes over, counted) and the trainer logs hit rate and fallbacks."""
+    import csv
+
+    from freamer_rl.config import load_config
+    from freamer_rl.train import Trainer
+
+    root = Path(__file__).resolve().parents[1]
+    cfg = load_config(root / "recipes" / "tiny.yaml", [
+        "shaping.language.weight=0.2", "shaping.language.parser=llm", f"shaping.language.llm_path={model_dirs['random']}",
+    ])  # fmt: skip
+    Trainer(cfg, tmp_path / "run").train()
+    with open(tmp_path / "run" / "progress.csv", newline="") as f:
+        row = list(csv.DictReader(f))[-1]
+    assert float(row["parser_fallbacks"]) >= 1  # Empty-5x5 has one mission: parsed once per env, then cached
+    assert 0 < float(row["parser_hit_rate"]) < 1
+    assert float(row["bonus_lang"]) != 0
