@@ -34,7 +34,8 @@ CURIOSITY_STEPS = 4
 def env_transforms(cfg) -> list:
     """Transforms the shaping adds to the training env, after ``RewardSum`` (so returns stay the env's own)."""
     novelty = cfg.shaping.novelty
-    return [NoveltyBonus(in_keys=list(novelty.keys), alpha=novelty.alpha)] if novelty.weight else []
+    # 16-byte digests as keys: a MiniGrid view is 1.2 kB, and a long run meets hundreds of thousands of them
+    return [NoveltyBonus(in_keys=list(novelty.keys), alpha=novelty.alpha, digest_size=16)] if novelty.weight else []
 
 
 def potential_difference(phi: torch.Tensor, done: torch.Tensor, gamma: float) -> torch.Tensor:
