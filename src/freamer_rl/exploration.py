@@ -302,8 +302,8 @@ class CuriosityModel(nn.Module):
 
     def intrinsic_reward(self, phi: torch.Tensor, action: torch.Tensor, valid: torch.Tensor, *,
                          update_stats: bool = True) -> torch.Tensor:  # fmt: skip
-        """Normalised curiosity ``r_t = (e_t - mean(e)) / std(e)`` ``[*B, T, 1]`` (running statistics; no gradient),
-        0 where invalid.
+        """Normalised curiosity ``r_t = (e_t - mean_batch(e)) / std(e)`` ``[*B, T, 1]`` (the mean over this batch's
+        valid steps, the running std; no gradient), 0 where invalid.
 
         ``update_stats=True`` first merges this batch's errors into the running statistics (once per collected
         batch); pass False to read the reward without changing them (e.g. under ``vmap``).
@@ -312,9 +312,11 @@ class CuriosityModel(nn.Module):
             err = self.prediction_error(phi, action, valid)
             if update_stats:
                 self.update_stats(err, valid)
-            # centred as well as scaled: an always-positive bonus would pay the agent for long episodes
-            centred = (err - self.err_mean) / (self.err_var + self.eps).sqrt()
-            return centred * self._mask(valid, err)
+            # centred on this batch's mean as well as scaled: an always-positive bonus would pay the agent for long
+            # episodes, and a running mean lags behind a forward model that keeps learning (a standing penalty)
+            mask = self._mask(valid, err)
+            batch_mean = (err * mask).sum() / mask.sum().clamp_min(1.0)
+            return (err - batch_mean) / (self.err_var + self.eps).sqrt() * mask
 
     def loss(self, phi: torch.Tensor, action: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
         """Forward-model MSE over the valid steps (a scalar; 0 when none is valid): the trainer's ``loss_curiosity``."""
