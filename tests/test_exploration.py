@@ -186,9 +186,10 @@ def test_curiosity_shapes_and_invalid_zero():
     assert r.shape == (4, 6, 1) and not r.requires_grad
     assert (r[:, -1] == 0).all() and r[0, 2].item() == 0 and (r[valid] != 0).all()
     # [*B, T, 1] masks and actions give the same reward; the last step is invalid whatever valid says
-    r2 = model.intrinsic_reward(phi, action.unsqueeze(-1), torch.ones(4, 6, 1, dtype=torch.bool), update_stats=False)
-    assert (r2[:, -1] == 0).all()
-    assert torch.allclose(r2[valid], r[valid])
+    r2 = model.intrinsic_reward(phi, action.unsqueeze(-1), valid.unsqueeze(-1), update_stats=False)
+    assert torch.allclose(r2, r)
+    r3 = model.intrinsic_reward(phi, action, torch.ones(4, 6, 1, dtype=torch.bool), update_stats=False)
+    assert (r3[:, -1] == 0).all()
 
 
 def test_curiosity_running_std_normalisation():
