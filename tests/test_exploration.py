@@ -244,9 +244,9 @@ def test_curiosity_forward_is_sync_free(monkeypatch):
     model.intrinsic_reward(phi, action, valid)  # update_stats=True too
     model.loss(phi, action, valid)
     monkeypatch.undo()
-    expected = model.intrinsic_reward(phi, action, valid, update_stats=False)
-    # per-row vmap (what GAE does to value networks) gives the batched result
+    # per-row vmap equals calling each row as its own batch (the centring mean is the batch's)
     fn = lambda p, a, v: model.intrinsic_reward(p, a, v, update_stats=False)  # noqa: E731
+    expected = torch.stack([fn(phi[i : i + 1], action[i : i + 1], valid[i : i + 1])[0] for i in range(len(phi))])
     assert torch.allclose(torch.func.vmap(fn)(phi, action, valid), expected, atol=1e-6)
 
 
