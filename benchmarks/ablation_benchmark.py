@@ -33,13 +33,15 @@ ARMS: dict[str, list[str]] = {
     "language_adaptive": ["shaping.language.weight=0.2", "shaping.time_penalty=0.02", "shaping.adaptive=true"],
     "vision_language": ["shaping.vision_language=0.1"],
     "curiosity": ["shaping.curiosity=0.2"],
+    "curiosity_low": ["shaping.curiosity=0.02"],
     "novelty": ["shaping.novelty.weight=0.1"],
     "success_buffer": ["success_buffer.enabled=true"],
     "ogm_a": ["ogm.mode=A"],
     "ogm_b": ["ogm.mode=B"],
     "adaptive_steps": ["model.flow.adaptive_steps=[1,2,3,5,7,10]"],
+    # every component but curiosity (0% success alone at Table A20's weight in the first run)
     "all": ["shaping.language.weight=0.2", "shaping.time_penalty=0.02", "shaping.adaptive=true",
-            "shaping.vision_language=0.1", "shaping.curiosity=0.2", "success_buffer.enabled=true", "ogm.mode=A",
+            "shaping.vision_language=0.1", "shaping.novelty.weight=0.1", "success_buffer.enabled=true", "ogm.mode=A",
             "model.flow.adaptive_steps=[1,2,3,5,7,10]"],
 }  # fmt: skip
 WINDOW = 100
