@@ -73,7 +73,7 @@ def run_freamer_chain(job: dict) -> dict:
     last = stages[-1]
     return {"method": job["method"], "seed": job["seed"], "frames": frames_before + int(last["frames"]),
             "episodes": episodes_before + int(last["episodes"]), "final_success_rate": last["final_success_rate"],
-            "fps": last.get("fps"), "rows": rows,
+            "fps": last.get("fps") or (sum(r["fps"] for r in rows) / len(rows) if rows else None), "rows": rows,
             "stages": " / ".join(f"{s['stage']} {int(s['frames']):,}" for s in stages)}  # fmt: skip
 
 
@@ -110,9 +110,9 @@ def make_jobs(task: str, methods: list[str], seeds: list[int], frames: int | Non
     return jobs
 
 
-def _fmt(v) -> str:
+def _fmt(v, missing: str = "not reached") -> str:
     if v is None:
-        return "not reached"
+        return missing
     return f"{v:,.0f}" if isinstance(v, (int, float)) else str(v)
 
 
@@ -136,7 +136,7 @@ def write_report(task: str, results: list[dict], out: Path, command: str) -> str
     for r in rows:
         lines.append(f"| {r['method']} | {r['seed']} | {_fmt(r['frames_to_80'])} | {_fmt(r['episodes_to_80'])} | "
                      f"{_fmt(r['frames_to_95'])} | {_fmt(r['episodes_to_95'])} | {r['final_success']:.3f} | "
-                     f"{_fmt(r['frames'])} | {_fmt(r['fps'])} |")
+                     f"{_fmt(r['frames'])} | {_fmt(r['fps'], 'n/a')} |")
     lines.append("")
     for m in dict.fromkeys(r["method"] for r in rows):
         mine = [r for r in rows if r["method"] == m]
