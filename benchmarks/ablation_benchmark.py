@@ -30,6 +30,7 @@ from harness import first_reaching, mean_std, plot_bands, run_freamer, run_jobs 
 ARMS: dict[str, list[str]] = {
     "base": [],
     "language": ["shaping.language.weight=0.2", "shaping.time_penalty=0.02"],
+    "language_strong": ["shaping.language.weight=1.0", "shaping.time_penalty=0.02", "shaping.adaptive=true"],
     "language_adaptive": ["shaping.language.weight=0.2", "shaping.time_penalty=0.02", "shaping.adaptive=true"],
     "vision_language": ["shaping.vision_language=0.1"],
     "curiosity": ["shaping.curiosity=0.2"],

@@ -32,6 +32,8 @@ TASKS = {
              "chain": "recipes/minigrid_multiroom_curriculum.chain.yaml"},
     "doorkey8x8": {"env": "MiniGrid-DoorKey-8x8-v0", "frames": 500_000, "target": 0.95,
                    "chain": "recipes/minigrid_doorkey_curriculum.chain.yaml"},
+    "n6": {"env": "MiniGrid-MultiRoom-N6-v0", "frames": 1_500_000, "target": 0.80,
+           "chain": "recipes/minigrid_multiroom_n6_curriculum.chain.yaml"},
 }  # fmt: skip
 METHODS = ("freamer", "ppo_mlp", "ppo_mlp_novelty")
 WINDOW = 100

@@ -84,3 +84,38 @@ def test_curriculum_benchmark_reports_chain_frames_and_reads_back(tmp_path):
     stamp = (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime
     curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])  # read back
     assert (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime == stamp
+
+
+def test_hard_task_benchmark_runs_every_method_and_reads_back(tmp_path, monkeypatch):
+    import shutil
+
+    import hard_task_benchmark
+
+    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
+    chain = tmp_path / "c.chain.yaml"
+    chain.write_text("name: demo\nstages:\n  - {name: a, recipe: tiny.yaml}\n  - {name: b, recipe: tiny.yaml}\n")
+    monkeypatch.setitem(hard_task_benchmark.TASKS, "demo",
+                        {"env": "MiniGrid-Empty-5x5-v0", "frames": 512, "target": 0.8, "chain": str(chain)})
+    out = tmp_path / "out"
+    argv = ["--task", "demo", "--frames", "512", "--seeds", "0", "--workers", "1", "--out", str(out)]
+    text = hard_task_benchmark.main(argv)
+    for method in ("| freamer | 0 |", "| ppo_mlp | 0 |", "| ppo_mlp_novelty | 0 |"):
+        assert method in text
+    assert (out / "learning_curve.png").is_file()
+    rows = (out / "results.csv").read_text().splitlines()
+    assert rows[0].startswith("method,seed,frames_to_80") and len(rows) == 4
+    stamps = {p.name: p.stat().st_mtime for p in (out / "jobs").iterdir()}
+    hard_task_benchmark.main(argv)  # finished runs are read back, not rerun
+    assert {p.name: p.stat().st_mtime for p in (out / "jobs").iterdir()} == stamps
+
+
+def test_ablation_benchmark_reports_each_arm_against_base(tmp_path):
+    import ablation_benchmark
+
+    text = ablation_benchmark.main(["--recipe", str(ROOT / "recipes" / "tiny.yaml"), "--env", "MiniGrid-Empty-5x5-v0",
+                                    "--frames", "256", "--seeds", "0", "--workers", "1", "--out", str(tmp_path),
+                                    "--arms", "base", "novelty", "ppo_mlp"])  # fmt: skip
+    for arm in ("| base |", "| novelty | shaping.novelty.weight=0.1 |", "| ppo_mlp |"):
+        assert arm in text
+    assert (tmp_path / "learning_curves.png").is_file()
+    assert (tmp_path / "results.csv").read_text().count("\n") == 4
