@@ -40,6 +40,8 @@ ARMS: dict[str, list[str]] = {
     "ogm_a": ["ogm.mode=A"],
     "ogm_b": ["ogm.mode=B"],
     "adaptive_steps": ["model.flow.adaptive_steps=[1,2,3,5,7,10]"],
+    "success_language": ["success_buffer.enabled=true", "shaping.language.weight=0.2", "shaping.time_penalty=0.02",
+                         "shaping.adaptive=true"],
     # every component but curiosity (0% success alone at Table A20's weight in the first run)
     "all": ["shaping.language.weight=0.2", "shaping.time_penalty=0.02", "shaping.adaptive=true",
             "shaping.vision_language=0.1", "shaping.novelty.weight=0.1", "success_buffer.enabled=true", "ogm.mode=A",
