@@ -366,4 +366,5 @@ def _crafter_options(cfg: Any) -> dict[str, Any]:
 
 #: The ``crafter`` entry point of the ``freamer_rl.envs`` group. No success rule: Crafter has no single goal (see
 #: the module docstring); its metric is the Crafter score of :mod:`freamer_rl.crafter_score`.
-ADAPTER = EnvAdapter(make_env=make_crafter_env, options=_crafter_options, success=None)
+ADAPTER = EnvAdapter(make_env=make_crafter_env, options=_crafter_options, success=None,
+                     achievements=CRAFTER_ACHIEVEMENTS)

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 
+from freamer_rl import env_registry
 from freamer_rl.config import load_config
 from freamer_rl.train import Trainer
 
@@ -42,3 +43,7 @@ def test_recipe_smoke(recipe, tmp_path):
     summary = Trainer(cfg, tmp_path / recipe.stem).train()
     assert summary["frames"] == 64
     assert (tmp_path / recipe.stem / "learning_curve.png").is_file()
+    if env_registry.get_adapter(cfg.env.adapter).achievements:  # Crafter: the official score and its report
+        assert 0 <= summary["crafter_score"] <= 100
+        for name in ("crafter_score.json", "crafter_achievements.md", "crafter_achievements.png"):
+            assert (tmp_path / recipe.stem / name).is_file()

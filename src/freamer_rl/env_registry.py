@@ -36,12 +36,16 @@ class EnvAdapter:
         make_batched_env: ``(env_id, num_envs, *, seed=None, **options) -> EnvBase`` of batch size ``[num_envs]``
             giving the same data as ``SerialEnv(num_envs, make_env)`` but faster (e.g. one TensorDict per batch
             instead of one per sub-env), or ``None``: the trainer then uses that SerialEnv.
+        achievements: names of the entries of the env's ``"achievements"`` observation (bool ``[A]``, unlocked so
+            far in the episode), e.g. Crafter's 22; the trainer then logs the Crafter score over all training
+            episodes (:mod:`freamer_rl.crafter_score`). Empty: none.
     """
 
     make_env: Callable[..., Any]
     options: Callable[[Any], dict[str, Any]] = _no_options
     success: Callable[[Any], torch.Tensor] | None = None
     make_batched_env: Callable[..., Any] | None = None
+    achievements: tuple[str, ...] = ()
 
 ENTRY_POINT_GROUP = "freamer_rl.envs"
 

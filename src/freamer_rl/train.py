@@ -54,6 +54,7 @@ from freamer_rl.config import ConfigError, FreamerConfig, config_to_dict
 from freamer_rl.config_checks import resolve_device
 from freamer_rl.layers.checks import set_value_checks
 from freamer_rl.errors import CheckpointError
+from freamer_rl.crafter_score import CrafterScore
 from freamer_rl.factory import FreamerModules, build_freamer
 from freamer_rl.losses import FreamerAuxLoss
 # re-exported: callers import EpisodeStats, plot_learning_curve and SUCCESS_TARGET from train
@@ -209,6 +210,9 @@ class Trainer:
         self.stats = EpisodeStats(
             window=cfg.logging.success_window, success_fn=env_registry.get_adapter(cfg.env.adapter).success
         )
+        # the Crafter score over every training episode, for adapters that report achievements
+        names = env_registry.get_adapter(cfg.env.adapter).achievements
+        self.achievements = CrafterScore(names) if names else None
         self.rows: list[dict] = []
         self.wall_time = 0.0
         self.resumed_from: Path | None = None
@@ -263,6 +267,8 @@ class Trainer:
             if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
                 self.step_stats.load_state_dict(ckpt["ppo_steps"])
             self.shaper.load_state_dict(ckpt.get("shaping", {}))
+            if self.achievements is not None and ckpt.get("achievements"):
+                self.achievements.load_state_dict(ckpt["achievements"])
             if self.ogm is not None and ckpt.get("ogm"):
                 self.ogm.load_state_dict(ckpt["ogm"])
         except CheckpointError:
@@ -286,6 +292,7 @@ class Trainer:
             "torch_rng": torch.get_rng_state(),
             "ppo_steps": self.step_stats.state_dict(),
             "shaping": self.shaper.state_dict(),
+            "achievements": self.achievements.state_dict() if self.achievements is not None else None,
             "ogm": self.ogm.state_dict() if self.ogm is not None else None,
             "format": CHECKPOINT_FORMAT,
             "trainer": "minigrid_ppo",  # freamer-rl eval dispatches on it (freamer_rl.trainers.TRAINERS)
@@ -447,6 +454,8 @@ class Trainer:
                 losses = self._update(data)
                 # counted only once trained on, so a checkpoint written on interrupt is consistent
                 self.stats.update(data, self.frames)
+                if self.achievements is not None:
+                    self.achievements.update(data)
                 self.frames += data.numel()
                 collector.update_policy_weights_()
                 self.batches += 1
@@ -502,6 +511,7 @@ class Trainer:
             **self._shaping_logs,
             **(self.ogm.metrics() if self.ogm is not None else {}),
             **self._parser_logs(),
+            **({"crafter_score": self.achievements.score()} if self.achievements is not None else {}),
             **{f"fm_steps_{m}": float(r.last_steps) for m, r in self.modules.refiners.items() if r.adaptive_steps},
             **self._fallback_counts(),
         }
@@ -547,6 +557,9 @@ class Trainer:
             "gates": self.modules.gates(),
             **self._fallback_counts(),
         }
+        if self.achievements is not None:  # per-achievement table, bar chart and score (official formula)
+            summary["crafter_score"] = self.achievements.score()
+            self.achievements.write_report(self.run_dir)
         (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
         if self.rows:
             plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id,
