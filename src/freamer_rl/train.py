@@ -21,6 +21,10 @@ Design notes:
 - The trunk runs once per minibatch; ClipPPOLoss receives the actor and value heads (TorchRL's shared-trunk option).
 - The model stays in eval mode: no dropout and deterministic slot initialisation, so the log-probabilities the
   loss recomputes match the ones stored at collection time.
+- The training machinery of the paper's App. A/G/K plugs in from the recipe: reward shaping
+  (:mod:`freamer_rl.shaping`; GAE then reads ``("next", "shaped_reward")`` and success stays judged on the env
+  reward), the success buffer (:class:`freamer_rl.success_buffer.SuccessReplay`), OGM-GE (:mod:`freamer_rl.ogm`:
+  parameter groups and a hook before each optimiser step) and adaptive FM steps (inside the refiners).
 """
 
 from __future__ import annotations
