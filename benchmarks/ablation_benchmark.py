@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from harness import first_reaching, mean_std, plot_bands, run_freamer, run_jobs  # noqa: E402
+from harness import finished_results, first_reaching, mean_std, plot_bands, run_freamer, run_jobs  # noqa: E402
 
 #: arm -> overrides of the recipe. Weights are Table A20's where the paper gives one.
 ARMS: dict[str, list[str]] = {
@@ -116,6 +116,7 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("--arms", nargs="+", choices=[*ARMS, "ppo_mlp"], default=[*ARMS, "ppo_mlp"])
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "ablation_n2s4"))
+    ap.add_argument("--report-only", action="store_true", help="tables from the finished runs; start nothing")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, format="%(message)s")
     out = Path(args.out)
@@ -126,7 +127,7 @@ def main(argv: list[str] | None = None) -> str:
             job = {"method": arm, "seed": seed, "env": args.env, "frames": args.frames, "recipe": args.recipe,
                    "overrides": [f"env.id={args.env}", *ARMS.get(arm, [])], "out": str(out)}  # fmt: skip
             jobs.append((_run_ppo_mlp if arm == "ppo_mlp" else run_freamer, job))
-    results = run_jobs(jobs, workers=args.workers)
+    results = finished_results(jobs) if args.report_only else run_jobs(jobs, workers=args.workers)
     order = {a: i for i, a in enumerate([*ARMS, "ppo_mlp"])}
     results.sort(key=lambda r: (order[r["method"]], r["seed"]))
     command = " ".join(["python benchmarks/ablation_benchmark.py", *(argv if argv is not None else sys.argv[1:])])

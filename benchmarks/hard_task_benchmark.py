@@ -24,7 +24,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-from harness import _run_cached, first_reaching, mean_std, plot_bands  # noqa: E402
+from harness import _run_cached, finished_results, first_reaching, mean_std, plot_bands  # noqa: E402
 
 #: task -> env id, frame budget (the issue's targets), the FreamerV1 chain, the success target.
 TASKS = {
@@ -159,12 +159,16 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("--frames", type=int, default=None, help="override every budget (smoke runs)")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default=None)
+    ap.add_argument("--report-only", action="store_true", help="tables from the finished runs; start nothing")
     args = ap.parse_args(argv)
     out = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / f"hard_{args.task}"
     out.mkdir(parents=True, exist_ok=True)
     jobs = make_jobs(args.task, args.methods, args.seeds, args.frames, out)
-    with ProcessPoolExecutor(max_workers=args.workers) as pool:
-        results = list(pool.map(_run_cached, jobs))
+    if args.report_only:
+        results = finished_results(jobs)
+    else:
+        with ProcessPoolExecutor(max_workers=args.workers) as pool:
+            results = list(pool.map(_run_cached, jobs))
     command = " ".join(["python benchmarks/hard_task_benchmark.py", *(argv if argv is not None else sys.argv[1:])])
     text = write_report(args.task, results, out, command)
     print(text)

@@ -63,6 +63,11 @@ def _run_cached(args: tuple[Callable[[dict], dict], dict]) -> dict:
     return result
 
 
+def finished_results(jobs: list[tuple[Callable[[dict], dict], dict]]) -> list[dict]:
+    """The results of the jobs that have finished (their result files), without running anything."""
+    return [json.loads(job_path(job).read_text()) for _, job in jobs if job_path(job).is_file()]
+
+
 def run_jobs(jobs: list[tuple[Callable[[dict], dict], dict]], workers: int = 2, fresh: bool = False) -> list[dict]:
     """Run ``(fn, job)`` pairs, ``workers`` at a time in spawned processes (one thread each); finished jobs are
     read back from their result files unless ``fresh``."""
