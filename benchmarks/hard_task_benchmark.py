@@ -139,7 +139,9 @@ def write_report(task: str, results: list[dict], out: Path, command: str) -> str
         lines.append(f"| {r['method']} | {r['seed']} | {_fmt(r['frames_to_80'])} | {_fmt(r['episodes_to_80'])} | "
                      f"{_fmt(r['frames_to_95'])} | {_fmt(r['episodes_to_95'])} | {r['final_success']:.3f} | "
                      f"{_fmt(r['frames'])} | {_fmt(r['fps'], 'n/a')} |")
-    lines.append("")
+    lines += ["", f"Methods: freamer = FreamerV1 through `{spec['chain']}` (each stage from the previous stage's weights); "
+              "ppo_mlp = `benchmarks/ppo_mlp_baseline.py` (FlatObs, MLP 256x2, TorchRL ClipPPOLoss/GAE); "
+              f"ppo_mlp_novelty = the same with `NoveltyBonus` (weight {NOVELTY_WEIGHT}) on the flat observation.", ""]
     for m in dict.fromkeys(r["method"] for r in rows):
         mine = [r for r in rows if r["method"] == m]
         lines.append(f"- {m}: frames to 80% {mean_std([r['frames_to_80'] for r in mine])}, to 95% "
