@@ -71,11 +71,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from tensordict import TensorDict, TensorDictBase
+from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 from freamer_rl.env_registry import EnvAdapter
+from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
 from freamer_rl.errors import EnvSetupError
 
 try:
@@ -118,11 +119,6 @@ CRAFTER_ACHIEVEMENTS: tuple[str, ...] = (
     "make_iron_sword", "make_stone_pickaxe", "make_stone_sword", "make_wood_pickaxe", "make_wood_sword",
     "place_furnace", "place_plant", "place_stone", "place_table", "wake_up",
 )  # fmt: skip
-
-_EMPTY_SIZE = torch.Size([])
-# TensorDict._new_unsafe builds a TensorDict without validating every entry (as in the MiniGrid adapter); fall back
-# to the public constructor if a tensordict release drops it.
-_new_td = getattr(TensorDict, "_new_unsafe", TensorDict)
 
 
 class CrafterNotInstalledError(EnvSetupError, ImportError):
@@ -213,7 +209,6 @@ class CrafterEnv(EnvBase):
             "length": self.length,
         }
         self._out_device = torch.device(self.device) if self.device is not None else torch.device("cpu")
-        self._is_cpu = self._out_device.type == "cpu"
         self._make_specs()
 
         # mutable state: the crafter env is built at the first reset (and again at the reset after a set_seed)
@@ -263,21 +258,15 @@ class CrafterEnv(EnvBase):
         return out
 
     def _finish(self, out: dict[str, Any]) -> TensorDictBase:
-        if self._is_cpu:
-            # every value was built here with the right shape on the CPU: skip TensorDict's per-key validation
-            return _new_td(out, batch_size=_EMPTY_SIZE, device=self._out_device)
-        return TensorDict(out, batch_size=()).to(self._out_device)
+        return finish_td(out, self._out_device)
 
     # --------------------------------------------------------------------------------------------------------------
     # EnvBase API
     # --------------------------------------------------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
-        if tensordict is not None and self._last_obs is not None:
-            mask = tensordict.get("_reset", None)
-            if mask is not None and not mask.any():
-                # nothing to reset: hand back the current observation (transforms may have added keys to it)
-                keys = [*self.observation_spec.keys(), *self.done_spec.keys()]
-                return self._last_obs.select(*keys, strict=False).clone()
+        same = unchanged_reset(self, tensordict, self._last_obs)
+        if same is not None:  # a "_reset" mask that resets nothing
+            return same
         if self._env is None or self._pending_seed is not None:
             seed, self._pending_seed = self._pending_seed, None
             if seed is None:

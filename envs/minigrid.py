@@ -61,11 +61,12 @@ import minigrid  # noqa: F401  (registers the MiniGrid-* and BabyAI-* ids with g
 import numpy as np
 import torch
 from minigrid.core.constants import COLOR_TO_IDX, OBJECT_TO_IDX, STATE_TO_IDX
-from tensordict import NonTensorData, TensorDict, TensorDictBase
+from tensordict import NonTensorData, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, NonTensor, Unbounded
 from torchrl.envs import EnvBase
 
 from freamer_rl.env_registry import EnvAdapter
+from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
 from freamer_rl.text import WordTokenizer
 from freamer_rl_envs.minigrid_language import LanguageReward, language_reward_option
 
@@ -83,10 +84,6 @@ __all__ = [
 DEFAULT_ENV_ID = "MiniGrid-MultiRoom-N2-S4-v0"
 PIXEL_TILE_SIZE = 8
 _TOKEN_CACHE_SIZE = 4096
-_EMPTY_SIZE = torch.Size([])
-# TensorDict._new_unsafe builds a TensorDict without validating every entry; fall back to the public constructor if
-# a tensordict release drops it.
-_new_td = getattr(TensorDict, "_new_unsafe", TensorDict)
 
 # Every word used by the mission strings of minigrid 3.x (minigrid/envs/*.py, the BabyAI verifier's instruction
 # surfaces and the WFC envs). Order fixes the ids: append new words at the end only, never reorder.
@@ -215,7 +212,6 @@ class MiniGridEnv(EnvBase):
         self._grid_shape = tuple(space.spaces["image"].shape)
         self._n_actions = int(self._env.action_space.n)
         self._out_device = torch.device(self.device) if self.device is not None else torch.device("cpu")
-        self._is_cpu = self._out_device.type == "cpu"
 
         self._make_specs()
 
@@ -337,7 +333,7 @@ class MiniGridEnv(EnvBase):
             "mission_tokens": self._mission_tokens.clone(),
         }
         if self.include_mission:
-            out["mission"] = NonTensorData(self._mission, batch_size=_EMPTY_SIZE, device=self._out_device)
+            out["mission"] = NonTensorData(self._mission, batch_size=EMPTY_SIZE, device=self._out_device)
         if self.reward_history:
             out["reward_history"] = torch.tensor(self._history, dtype=torch.float32)
         if self._language is not None:
@@ -351,23 +347,15 @@ class MiniGridEnv(EnvBase):
         return self._unwrapped.get_frame(tile_size=PIXEL_TILE_SIZE, agent_pov=True)
 
     def _finish(self, out: dict[str, Any]) -> TensorDictBase:
-        if self._is_cpu:
-            # Every value was built here with the right shape on the CPU: skip TensorDict's per-key validation
-            # (it costs about as much as the rest of the adapter). Created on the env device so that
-            # EnvBase.step does not run a .to(device) over it either.
-            return _new_td(out, batch_size=_EMPTY_SIZE, device=self._out_device)
-        return TensorDict(out, batch_size=()).to(self._out_device)
+        return finish_td(out, self._out_device)
 
     # --------------------------------------------------------------------------------------------------------------
     # EnvBase API
     # --------------------------------------------------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs: Any) -> TensorDictBase:
-        if tensordict is not None and self._last_obs is not None:
-            mask = tensordict.get("_reset", None)
-            if mask is not None and not mask.any():
-                # nothing to reset: hand back the current observation (transforms may have added keys to it)
-                keys = [*self.observation_spec.keys(), *self.done_spec.keys()]
-                return self._last_obs.select(*keys, strict=False).clone()
+        same = unchanged_reset(self, tensordict, self._last_obs)
+        if same is not None:  # a "_reset" mask that resets nothing
+            return same
         out = self._observation(self._restart())
         out["done"] = self._false.clone()
         out["terminated"] = self._false.clone()
