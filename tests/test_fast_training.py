@@ -37,7 +37,7 @@ def test_vec_env_specs(pixels):
     env.close()
 
 
-def test_vec_env_gives_the_serial_env_data():
+def test_vec_env_gives_the_serial_env_data(scripted_rollout):
     """Same seed, same actions -> the same observations, rewards and ends as SerialEnv of single envs, through
     episode ends and partial resets."""
     n, steps = 4, 120
@@ -45,18 +45,7 @@ def test_vec_env_gives_the_serial_env_data():
     vec = MiniGridVecEnv(ENV_ID, n)
     gen = torch.Generator().manual_seed(0)
     actions = torch.randint(0, 3, (steps, n), generator=gen)  # turn / move: episodes end by truncation or goal
-    tds = []
-    for env in (serial, vec):
-        env.set_seed(7)
-        td = env.reset()
-        rows = []
-        for t in range(steps):
-            td.set("action", actions[t])
-            step_td, td = env.step_and_maybe_reset(td)
-            rows.append(step_td.exclude("action").clone())
-        tds.append(torch.stack(rows, dim=1))
-        env.close()
-    a, b = tds
+    a, b = (scripted_rollout(env, actions, seed=7) for env in (serial, vec))
     assert bool(a["next", "done"].any())  # the comparison crossed episode ends
     assert set(a.keys(True, True)) == set(b.keys(True, True))
     for key in a.keys(True, True):

@@ -134,3 +134,18 @@ def test_adaptive_steps_are_logged_within_the_choices(tmp_path):
     row = _rows(tmp_path / "run")[-1]
     for m in ("state", "language", "reward"):
         assert 1 <= float(row[f"fm_steps_{m}"]) <= 10
+
+
+def test_checkpoints_from_before_adaptive_steps_still_resume(tmp_path):
+    """A checkpoint whose config predates model.flow.adaptive_steps / adaptive_tau (trained with them off) resumes
+    and transfers; one that really differs is still refused."""
+    Trainer(load_config(TINY), tmp_path / "run").train()
+    path = latest_checkpoint(tmp_path / "run")
+    ckpt = torch.load(path, weights_only=True)
+    del ckpt["config"]["model"]["flow"]["adaptive_steps"], ckpt["config"]["model"]["flow"]["adaptive_tau"]
+    torch.save(ckpt, path)
+    Trainer(load_config(TINY, ["run.total_frames=384"]), tmp_path / "run").train()
+    assert len(_rows(tmp_path / "run")) == 3
+    Trainer(load_config(TINY, [f"run.init_from={path}"]), tmp_path / "child")._lock.release()
+    with pytest.raises(CheckpointError, match="adaptive_steps"):
+        Trainer(load_config(TINY, ["model.flow.adaptive_steps=[1,2]", "run.total_frames=512"]), tmp_path / "run")

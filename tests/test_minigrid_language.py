@@ -270,7 +270,7 @@ def test_check_env_specs_with_the_option(env_id):  # the real regex parser
     vec.close()
 
 
-def test_vec_env_gives_the_serial_env_lang_reward(fixed_parser):
+def test_vec_env_gives_the_serial_env_lang_reward(fixed_parser, scripted_rollout):
     """Same seed, same random actions: MiniGridVecEnv and SerialEnv of single envs agree on every key, through
     episode ends (MultiRoom-N2-S4 parsed as 'door, then goal'; random turn / move / pickup / toggle)."""
     fixed_parser.parsed = ParsedMission(Target("goal"), (Target("door"),))
@@ -279,18 +279,8 @@ def test_vec_env_gives_the_serial_env_lang_reward(fixed_parser):
     actions = torch.tensor([LEFT, RIGHT, FORWARD, PICKUP, TOGGLE])[
         torch.randint(0, 5, (steps, n), generator=torch.Generator().manual_seed(0))
     ]
-    tds = []
-    for env in (SerialEnv(n, make), MiniGridVecEnv(MULTIROOM, n, language_reward=OPTION)):
-        env.set_seed(3)
-        td = env.reset()
-        rows = []
-        for t in range(steps):
-            td.set("action", actions[t])
-            step_td, td = env.step_and_maybe_reset(td)
-            rows.append(step_td.exclude("action").clone())
-        tds.append(torch.stack(rows, dim=1))
-        env.close()
-    a, b = tds
+    envs = (SerialEnv(n, make), MiniGridVecEnv(MULTIROOM, n, language_reward=OPTION))
+    a, b = (scripted_rollout(env, actions, seed=3) for env in envs)
     assert bool(a["next", "done"].any())
     lang = a["next", "lang_reward"]
     assert bool((lang >= G).any()) and bool(((lang > 0) & (lang < G)).any())  # door bonuses and dense terms

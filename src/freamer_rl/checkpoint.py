@@ -352,13 +352,21 @@ def _structural_diff(a: dict, b: dict, prefix: str = "") -> list[str]:
     return diffs
 
 
+def _with_defaults(saved: dict, section: str) -> dict:
+    """A saved config section with the fields a later release added filled in at their defaults: a checkpoint written
+    before ``model.flow.adaptive_steps`` existed was trained with it off (the default), so it still matches."""
+    from freamer_rl.config import FreamerConfig, _merge, config_to_dict
+
+    return _merge(config_to_dict(FreamerConfig())[section], saved)
+
+
 def check_checkpoint_config(saved: dict, current: dict, path: Path) -> None:
     """CheckpointError when the model/env sections differ (the weights would not fit or mean something else)."""
     if not isinstance(saved, dict) or not all(isinstance(saved.get(s, {}), dict) for s in _STRUCTURAL_SECTIONS):
         raise CheckpointError(f"checkpoint {path} holds no readable config (its 'config' entry is not a mapping)")
     diffs = []
     for section in _STRUCTURAL_SECTIONS:
-        diffs += _structural_diff(saved.get(section, {}), current.get(section, {}), section)
+        diffs += _structural_diff(_with_defaults(saved.get(section, {}), section), current.get(section, {}), section)
     if diffs:
         raise CheckpointError(f"checkpoint {path} comes from another config ({'; '.join(diffs[:4])})")
 
@@ -378,7 +386,7 @@ def transfer_weights(modules: FreamerModules, source: str | Path, current: dict)
     saved = ckpt["config"].get("model") if isinstance(ckpt["config"], dict) else None
     if not isinstance(saved, dict):
         raise CheckpointError(f"run.init_from: checkpoint {path} holds no readable model config")
-    diffs = _structural_diff(saved, current.get("model", {}), "model")
+    diffs = _structural_diff(_with_defaults(saved, "model"), current.get("model", {}), "model")
     if diffs:
         raise CheckpointError(f"run.init_from: checkpoint {path} has another model ({'; '.join(diffs[:4])})")
     load_model_state(modules, ckpt["model"], path)
