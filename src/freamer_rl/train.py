@@ -40,7 +40,6 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.collectors import Collector
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, StepCounter, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
@@ -54,6 +53,7 @@ from freamer_rl.checkpoint import (  # noqa: F401
     atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
     load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint, transfer_weights,
 )
+from freamer_rl.collection import make_collector
 from freamer_rl.config import ConfigError, FreamerConfig, config_to_dict
 from freamer_rl.config_checks import resolve_device
 from freamer_rl.layers.checks import set_value_checks
@@ -312,7 +312,7 @@ class Trainer:
                                    option="logging.backend")
 
     # -- data -----------------------------------------------------------------------------------------------
-    def _make_collector(self, remaining: int) -> Collector:
+    def _make_collector(self, remaining: int):
         cfg = self.cfg
         seed = cfg.run.seed * 10_000 + self.frames  # a resumed run does not replay the same episodes
         fpb = cfg.ppo.frames_per_batch
@@ -320,18 +320,10 @@ class Trainer:
         primers = self.modules.primers()
         # envs step on the CPU; the policy runs on run.device and the batch is stored there for GAE and the loss
         devices = {"policy_device": self.device, "env_device": "cpu", "storing_device": self.device}
-        if cfg.collector.num_collectors == 1:
-            env_fn = functools.partial(make_batched_env, cfg, primers, seed)
-            return Collector(
-                env_fn, self.modules.policy, frames_per_batch=fpb, total_frames=total,
-                auto_register_policy_transforms=False, **devices,
-            )
-        n = cfg.collector.num_collectors
-        env_fns = [functools.partial(make_batched_env, cfg, primers, seed + 1000 * i) for i in range(n)]
-        return Collector(
-            env_fns, self.modules.policy, num_collectors=n, sync=True, frames_per_batch=fpb, total_frames=total,
-            auto_register_policy_transforms=False, **devices,
-        )
+        env_fns = [functools.partial(make_batched_env, cfg, primers, seed + 1000 * i)
+                   for i in range(cfg.collector.num_collectors)]  # fmt: skip
+        return make_collector(cfg.collector, env_fns, self.modules.policy, frames_per_batch=fpb, total_frames=total,
+                              devices=devices)
 
     @torch.no_grad()
     def _compute_advantage(self, data: TensorDictBase) -> TensorDictBase:
