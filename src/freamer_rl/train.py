@@ -29,12 +29,8 @@ Design notes:
 
 from __future__ import annotations
 
-import csv
 import functools
-import json
 import logging
-import math
-import time
 from pathlib import Path
 from typing import Any
 
@@ -48,17 +44,14 @@ from torchrl.objectives.value import GAE
 from freamer_rl import env_registry
 # Format, reader (weights_only) and the one atomic, rotating writer live in freamer_rl.checkpoint, shared with the
 # health trainer; re-exported here because callers (evaluate, the CLI, user scripts) import them from train.
-from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT
+from freamer_rl.checkpoint import FORMAT as CHECKPOINT_FORMAT  # noqa: F401
 from freamer_rl.checkpoint import (  # noqa: F401
     atomic_write_text, check_checkpoint_config, latest_checkpoint, list_checkpoints, load_checkpoint,
     load_model_state, remove_stale_temps, resume_checkpoint, save_checkpoint, transfer_weights,
 )
-from freamer_rl.collection import make_collector
-from freamer_rl.config import ConfigError, FreamerConfig, config_to_dict
-from freamer_rl.config_checks import resolve_device
+from freamer_rl.config import FreamerConfig, config_to_dict
 from freamer_rl.layers.checks import set_value_checks
 from freamer_rl.errors import CheckpointError
-from freamer_rl.crafter_score import CrafterScore
 from freamer_rl.factory import FreamerModules, build_freamer
 from freamer_rl.losses import FreamerAuxLoss
 # re-exported: callers import EpisodeStats, plot_learning_curve and SUCCESS_TARGET from train
@@ -68,8 +61,8 @@ from freamer_rl.metrics import (  # noqa: F401
 )
 from freamer_rl.ogm import OGMGE
 from freamer_rl.optim import StepStats, optimizer_step
-from freamer_rl.runfiles import git_commit, make_metrics_logger, write_run_files  # noqa: F401 (git_commit re-exported)
-from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm, run_name_problem, write_rows_csv
+from freamer_rl.runfiles import git_commit  # noqa: F401 (re-exported)
+from freamer_rl.runloop import RunLoop, default_run_name, resolve_run_dir  # noqa: F401 (default_run_name re-exported)
 from freamer_rl.sequences import sequence_replay_buffer, split_sequences
 from freamer_rl.shaping import SHAPED_REWARD, RewardShaper, env_transforms
 from freamer_rl.success_buffer import SuccessReplay, weighted_ppo_loss
@@ -127,40 +120,20 @@ def build_modules(cfg: FreamerConfig) -> FreamerModules:
 
 
 # --------------------------------------------------------------------------------------------------------------
-# Run bookkeeping
+# FreamerV1's PPO (the run loop itself is freamer_rl.runloop.RunLoop, shared with the baselines)
 # --------------------------------------------------------------------------------------------------------------
 
 
-def default_run_name(cfg: FreamerConfig) -> str:
-    # env ids may hold a namespace ("ALE/Pong-v5"): keep the name one folder under run.output_dir
-    env_short = cfg.env.id.replace("MiniGrid-", "").replace("-v0", "")
-    env_short = env_short.replace("/", "_").replace("\\", "_").replace("..", "_")
-    return f"{env_short}-s{cfg.run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
-
-
-# --------------------------------------------------------------------------------------------------------------
-# Checkpoints
-# --------------------------------------------------------------------------------------------------------------
-
-
-
-# --------------------------------------------------------------------------------------------------------------
-# The loop
-# --------------------------------------------------------------------------------------------------------------
-
-
-class Trainer:
+class Trainer(RunLoop):
     """PPO on FreamerV1 with TorchRL parts. ``Trainer(cfg, run_dir).train()``; see the module docstring."""
 
+    trainer_name = "minigrid_ppo"
+
     def __init__(self, cfg: FreamerConfig, run_dir: str | Path, *, resume: bool = True) -> None:
-        self.cfg = cfg
-        self.run_dir = Path(run_dir)
-        self.device = resolve_device(cfg.run.device)  # before any work: 'cuda' without a visible GPU is one line
+        super().__init__(cfg, run_dir)
         if self.device.type != "cpu":  # their host syncs would stall the accelerator once per layer call
             set_value_checks(False)
             logger.info("run.device=%s: the layers' eager value checks (NaN inputs, index ranges) are off", self.device)
-        torch.set_num_threads(cfg.run.threads)
-        torch.manual_seed(cfg.run.seed)
         self.modules = build_modules(cfg)
         # model, losses, replay storage and (created after the move) the optimiser state live on run.device;
         # the envs stay on the CPU (the Collector moves observations to the policy's device)
@@ -209,121 +182,67 @@ class Trainer:
         # fused Adam / foreach clipping: ~4x less optimiser overhead for the ~90 small parameter tensors
         self.optimizer = torch.optim.Adam(groups, lr=p.lr, eps=p.adam_eps, fused=True)
         self.step_stats = StepStats("PPO")
-        self.frames = 0
-        self.batches = 0
-        self.stats = EpisodeStats(
-            window=cfg.logging.success_window, success_fn=env_registry.get_adapter(cfg.env.adapter).success
-        )
-        # the Crafter score over every training episode, for adapters that report achievements
-        names = env_registry.get_adapter(cfg.env.adapter).achievements
-        self.achievements = CrafterScore(names) if names else None
-        self.rows: list[dict] = []
-        self.wall_time = 0.0
-        self.resumed_from: Path | None = None
         # held from here until train() ends: a second run on this directory is refused instead of interleaving
-        self._lock = RunDirLock(self.run_dir).acquire()
-        try:
-            self._open_run_dir(resume)
-        except BaseException:
-            self._lock.release()
-            raise
+        self._start(resume)
         frozen = sum(q.numel() for q in self.modules.actor_value.parameters() if not q.requires_grad)
         logger.info("run dir %s | %s trainable parameters%s | device %s", self.run_dir,
                     f"{sum(q.numel() for q in self.params):,}", f" ({frozen:,} frozen)" if frozen else "", self.device)
 
-    # -- bookkeeping ----------------------------------------------------------------------------------------
-    def _open_run_dir(self, resume: bool) -> None:
-        """Resume from the latest checkpoint (or refuse to overwrite one), then make the files match the state."""
-        ckpt_path = resume_checkpoint(self.run_dir, resume, "delete it (--no-resume never deletes a run)")
+    # -- RunLoop hooks -----------------------------------------------------------------------------------------
+    def _policy(self):
+        return self.modules.policy
+
+    def _primers(self) -> list:
+        return self.modules.primers()
+
+    def _learn(self, data: TensorDictBase) -> dict[str, float]:
+        return self._update(self._compute_advantage(data))
+
+    def _after_open(self, ckpt_path: Path | None) -> None:
         if ckpt_path is not None:
-            self._resume(ckpt_path)
             if self.cfg.run.init_from:
                 logger.info("resuming this run's own checkpoint: run.init_from=%s is not applied",
                             self.cfg.run.init_from)
         elif self.cfg.run.init_from:
             source = transfer_weights(self.modules, self.cfg.run.init_from, config_to_dict(self.cfg))
             logger.info("initialised the model from %s (run.init_from)", source)
-        # progress.csv = the checkpoint's rows: rows written after it (a kill -9) go, a fresh start truncates
-        self._rewrite_progress(self.run_dir / "progress.csv")
-        self._write_run_files()
 
-    def _write_run_files(self) -> None:
-        write_run_files(self.run_dir, config_to_dict(self.cfg), self.resumed_from)
-
-    def _resume(self, path: Path) -> None:
-        ckpt = load_checkpoint(path)
-        check_checkpoint_config(ckpt["config"], config_to_dict(self.cfg), path)
+    def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
         saved_ogm = (ckpt["config"].get("ogm") or {}).get("mode", "none")
         if saved_ogm != self.cfg.ogm.mode:  # OGM-GE's parameter groups shape the optimiser state
             raise CheckpointError(f"checkpoint {path} was trained with ogm.mode={saved_ogm}, this config has "
                                   f"ogm.mode={self.cfg.ogm.mode}; resume with the same mode")  # fmt: skip
         load_model_state(self.modules, ckpt["model"], path)
-        try:
-            self.optimizer.load_state_dict(ckpt["optimizer"])
-            for group in self.optimizer.param_groups:  # the optimiser state keeps its moments; the config sets lr/eps
-                group["lr"], group["eps"] = self.cfg.ppo.lr * group.get("lr_scale", 1.0), self.cfg.ppo.adam_eps
-            self.frames = int(ckpt["frames"])
-            self.batches = int(ckpt["batches"])
-            self.stats.load_state_dict(ckpt["stats"])
-            self.rows = [dict(r) for r in ckpt["rows"]]
-            self.wall_time = float(ckpt.get("wall_time", 0.0))
-            torch.set_rng_state(ckpt["torch_rng"])
-            if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
-                self.step_stats.load_state_dict(ckpt["ppo_steps"])
-            self.shaper.load_state_dict(ckpt.get("shaping", {}))
-            if self.achievements is not None and ckpt.get("achievements"):
-                self.achievements.load_state_dict(ckpt["achievements"])
-            if self.ogm is not None and ckpt.get("ogm"):
-                self.ogm.load_state_dict(ckpt["ogm"])
-        except CheckpointError:
-            raise
-        except (KeyError, TypeError, ValueError, RuntimeError) as err:  # a hand-edited or foreign payload
-            detail = f"missing entry {err}" if isinstance(err, KeyError) else str(err).splitlines()[0][:200]
-            raise CheckpointError(f"checkpoint {path} is incomplete or damaged: {detail}") from err
-        self.resumed_from = path
-        logger.info("resumed from %s at %d frames, %d episodes", path, self.frames, self.stats.episodes)
+        self.optimizer.load_state_dict(ckpt["optimizer"])
+        for group in self.optimizer.param_groups:  # the optimiser state keeps its moments; the config sets lr/eps
+            group["lr"], group["eps"] = self.cfg.ppo.lr * group.get("lr_scale", 1.0), self.cfg.ppo.adam_eps
+        if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
+            self.step_stats.load_state_dict(ckpt["ppo_steps"])
+        self.shaper.load_state_dict(ckpt.get("shaping", {}))
+        if self.ogm is not None and ckpt.get("ogm"):
+            self.ogm.load_state_dict(ckpt["ogm"])
 
-    def _checkpoint(self) -> Path:
-        payload = {
+    def _model_state(self) -> dict[str, Any]:
+        return {
             "model": self.modules.actor_value.state_dict(),
             "optimizer": self.optimizer.state_dict(),
-            "frames": self.frames,
-            "batches": self.batches,
-            "stats": self.stats.state_dict(),
-            "rows": self.rows,
-            "wall_time": self.wall_time,
-            "config": config_to_dict(self.cfg),
-            "torch_rng": torch.get_rng_state(),
             "ppo_steps": self.step_stats.state_dict(),
             "shaping": self.shaper.state_dict(),
-            "achievements": self.achievements.state_dict() if self.achievements is not None else None,
             "ogm": self.ogm.state_dict() if self.ogm is not None else None,
-            "format": CHECKPOINT_FORMAT,
-            "trainer": "minigrid_ppo",  # freamer-rl eval dispatches on it (freamer_rl.trainers.TRAINERS)
         }
-        path = save_checkpoint(self.run_dir, payload)  # atomic + rotated; see freamer_rl.checkpoint
-        if self.rows:
-            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id,
-                                window=self.cfg.logging.success_window)
-        return path
 
-    def _make_logger(self):
-        return make_metrics_logger(self.run_dir, self.cfg.logging.backend, config_to_dict(self.cfg),
-                                   option="logging.backend")
+    def _extra_row(self) -> dict[str, Any]:
+        return {
+            **{f"gate_{m}": g for m, g in self.modules.gates().items()},
+            **self._shaping_logs,
+            **(self.ogm.metrics() if self.ogm is not None else {}),
+            **self._parser_logs(),
+            **{f"fm_steps_{m}": float(r.last_steps) for m, r in self.modules.refiners.items() if r.adaptive_steps},
+            **self._fallback_counts(),
+        }
 
-    # -- data -----------------------------------------------------------------------------------------------
-    def _make_collector(self, remaining: int):
-        cfg = self.cfg
-        seed = cfg.run.seed * 10_000 + self.frames  # a resumed run does not replay the same episodes
-        fpb = cfg.ppo.frames_per_batch
-        total = math.ceil(remaining / fpb) * fpb
-        primers = self.modules.primers()
-        # envs step on the CPU; the policy runs on run.device and the batch is stored there for GAE and the loss
-        devices = {"policy_device": self.device, "env_device": "cpu", "storing_device": self.device}
-        env_fns = [functools.partial(make_batched_env, cfg, primers, seed + 1000 * i)
-                   for i in range(cfg.collector.num_collectors)]  # fmt: skip
-        return make_collector(cfg.collector, env_fns, self.modules.policy, frames_per_batch=fpb, total_frames=total,
-                              devices=devices)
+    def _extra_summary(self) -> dict[str, Any]:
+        return {"gates": self.modules.gates(), **self._fallback_counts()}
 
     @torch.no_grad()
     def _compute_advantage(self, data: TensorDictBase) -> TensorDictBase:
@@ -413,105 +332,6 @@ class Trainer:
             "compile_fallbacks": int(sum(int(getattr(m, "compile_fallbacks", 0)) for m in mods)),
         }
 
-    # -- main -----------------------------------------------------------------------------------------------
-    def train(self) -> dict[str, Any]:
-        """Train up to ``run.total_frames``; returns the summary. Holds the run-dir lock until it returns.
-
-        Ctrl-C (KeyboardInterrupt) and SIGTERM (:class:`~freamer_rl.rundir.Terminated`) write a checkpoint and
-        re-raise; the previous SIGTERM handler is restored afterwards.
-        """
-        self._lock.acquire()  # no-op while __init__'s lock is held; re-locks for a second train() call
-        sigterm = catch_sigterm()
-        try:
-            with quiet_library_logs():  # no per-batch INFO lines of TorchRL in the user's terminal
-                return self._train()
-        finally:
-            restore_sigterm(sigterm)
-            self._lock.release()
-
-    def _train(self) -> dict[str, Any]:
-        cfg = self.cfg
-        remaining = cfg.run.total_frames - self.frames
-        if remaining <= 0:
-            logger.info("run already has %d frames (run.total_frames=%d): nothing to do", self.frames,
-                        cfg.run.total_frames)
-            return self._finish()
-        metrics_logger = self._make_logger()
-        collector = self._make_collector(remaining)
-        progress_path = self.run_dir / "progress.csv"
-        next_ckpt = (self.frames // cfg.logging.checkpoint_every_frames + 1) * cfg.logging.checkpoint_every_frames
-        # a tqdm bar on a terminal, else a plain log line every ~10 s
-        progress = ProgressReporter(cfg.run.total_frames, self.frames, bar=cfg.logging.progress_bar)
-        t_start = time.perf_counter()
-        t_batch = t_start
-        try:
-            for data in collector:
-                data = self._compute_advantage(data)
-                losses = self._update(data)
-                # counted only once trained on, so a checkpoint written on interrupt is consistent
-                self.stats.update(data, self.frames)
-                if self.achievements is not None:
-                    self.achievements.update(data)
-                self.frames += data.numel()
-                collector.update_policy_weights_()
-                self.batches += 1
-                now = time.perf_counter()
-                row = self._batch_row(data.numel() / max(now - t_batch, 1e-9), losses)
-                t_batch = now
-                self.rows.append(row)
-                self._append_progress(progress_path, row)
-                if metrics_logger is not None and self.batches % cfg.logging.log_every_batches == 0:
-                    for k, v in row.items():
-                        if isinstance(v, (int, float)) and math.isfinite(v):
-                            metrics_logger.log_scalar(k, v, step=self.frames)
-                progress.update(self.frames, data.numel(), self.stats)
-                if self.frames >= next_ckpt:
-                    self.wall_time += time.perf_counter() - t_start
-                    t_start = time.perf_counter()
-                    self._checkpoint()
-                    next_ckpt += cfg.logging.checkpoint_every_frames
-                if (
-                    cfg.run.stop_at_success is not None
-                    and len(self.stats.recent_success) >= self.stats.window
-                    and self.stats.success_rate >= cfg.run.stop_at_success
-                ):
-                    logger.info("success rate %.3f >= run.stop_at_success: stopping", self.stats.success_rate)
-                    break
-                if self.frames >= cfg.run.total_frames:
-                    break
-        except KeyboardInterrupt as err:
-            # keep everything learnt so far: rerunning the same command resumes from this checkpoint
-            self.wall_time += time.perf_counter() - t_start
-            path = self._checkpoint()
-            how = "terminated by SIGTERM" if isinstance(err, Terminated) else "interrupted"
-            logger.warning("%s at %d frames; saved %s (rerun the same command to resume)", how, self.frames, path)
-            raise
-        finally:
-            collector.shutdown()
-            progress.close()
-        self.wall_time += time.perf_counter() - t_start
-        self._checkpoint()
-        return self._finish()
-
-    def _batch_row(self, fps: float, losses: dict[str, float]) -> dict[str, Any]:
-        """The progress.csv row of the batch just trained on."""
-        return {
-            "frames": self.frames,
-            "episodes": self.stats.episodes,
-            "success_rate": self.stats.success_rate,
-            "return_mean": self.stats.mean_return,
-            "episode_length": self.stats.mean_length,
-            "fps": fps,
-            **losses,
-            **{f"gate_{m}": g for m, g in self.modules.gates().items()},
-            **self._shaping_logs,
-            **(self.ogm.metrics() if self.ogm is not None else {}),
-            **self._parser_logs(),
-            **({"crafter_score": self.achievements.score()} if self.achievements is not None else {}),
-            **{f"fm_steps_{m}": float(r.last_steps) for m, r in self.modules.refiners.items() if r.adaptive_steps},
-            **self._fallback_counts(),
-        }
-
     def _parser_logs(self) -> dict[str, float]:
         """Mission-parser cache hit rate and LLM fallbacks (App. A.1) of this process's parsers, with R_lang on."""
         if not self.cfg.shaping.language.weight:
@@ -520,53 +340,6 @@ class Trainer:
 
         stats = parser_stats()
         return {"parser_hit_rate": float(stats["hit_rate"]), "parser_fallbacks": float(stats["fallbacks"])}
-
-    def _rewrite_progress(self, path: Path) -> None:
-        """Replace progress.csv with ``self.rows`` atomically (columns of the last row; empty file without rows)."""
-        write_rows_csv(path, self.rows, fields=list(self.rows[-1]) if self.rows else None)
-
-    def _append_progress(self, path: Path, row: dict) -> None:
-        """Append ``row`` (already the last of ``self.rows``); rewrite the file when its columns differ."""
-        header: list[str] = []
-        if path.exists():
-            with path.open(newline="") as f:
-                header = next(csv.reader(f), [])
-        if header != list(row):
-            # new file, or columns changed (e.g. a resumed run with other diagnostics): rewrite from the kept rows
-            self._rewrite_progress(path)
-            return
-        with path.open("a", newline="") as f:
-            csv.DictWriter(f, fieldnames=list(row)).writerow(row)
-
-    def _finish(self) -> dict[str, Any]:
-        summary = {
-            "env": self.cfg.env.id,
-            "seed": self.cfg.run.seed,
-            "frames": self.frames,
-            "episodes": self.stats.episodes,
-            "final_success_rate": self.stats.success_rate,
-            "final_return_mean": self.stats.mean_return,
-            "frames_to_95": self.stats.first_target_frames,
-            "episodes_to_95": self.stats.first_target_episodes,
-            "wall_time_s": self.wall_time,
-            "fps": self.frames / self.wall_time if self.wall_time > 0 else None,
-            "gates": self.modules.gates(),
-            **self._fallback_counts(),
-        }
-        if self.achievements is not None:  # per-achievement table, bar chart and score (official formula)
-            summary["crafter_score"] = self.achievements.score()
-            self.achievements.write_report(self.run_dir)
-        (self.run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
-        if self.rows:
-            plot_learning_curve(self.rows, self.run_dir / "learning_curve.png", title=self.cfg.env.id,
-                                window=self.cfg.logging.success_window)
-        fps = f" ({summary['fps']:.0f} frames/s)" if summary["fps"] else ""
-        logger.info(
-            "finished: %d frames, %d episodes | success %s, return %s (last %d episodes) | wall time %s%s | run dir %s",
-            self.frames, self.stats.episodes, format_rate(self.stats.success_rate), format_rate(self.stats.mean_return),
-            min(self.stats.episodes, self.stats.window), format_duration(self.wall_time), fps, self.run_dir,
-        )  # fmt: skip
-        return summary
 
 
 def _action_count(actor) -> int:
@@ -582,9 +355,4 @@ def train(cfg: FreamerConfig, run_dir: str | Path | None = None, *, resume: bool
     ``run_dir`` default: ``run.output_dir/run.name`` (or a name from env id, seed and time). ``resume=False`` on a
     directory that already holds checkpoints raises FreamerError (nothing is deleted).
     """
-    if run_dir is None:
-        name = cfg.run.name or default_run_name(cfg)
-        if problem := run_name_problem(name):  # config validation covers run.name; this guards the default too
-            raise ConfigError(f"run.name: {problem}")
-        run_dir = Path(cfg.run.output_dir) / name
-    return Trainer(cfg, Path(run_dir), resume=resume).train()
+    return Trainer(cfg, resolve_run_dir(cfg, run_dir), resume=resume).train()
