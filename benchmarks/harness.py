@@ -1,5 +1,6 @@
 """Shared benchmark machinery: resumable jobs run two at a time, FreamerV1 runs through the library's Trainer, and
-learning curves with min-max bands across seeds.
+learning curves with min-max bands across seeds (``plot_bands``, ``first_reaching`` and ``mean_std`` live in
+:mod:`freamer_rl.suite_report`, which ``freamer-rl suite`` uses too).
 
 A job is a dict with at least ``method``, ``seed`` and ``out``. Its result is stored as
 ``<out>/jobs/<method>_s<seed>.json`` when it finishes, and a rerun of the same benchmark command skips finished jobs
@@ -11,13 +12,14 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 import multiprocessing as mp
 import shutil
-import statistics
 import time
 from pathlib import Path
 from typing import Callable
+
+# one copy, in the library (freamer_rl.suite_report); re-exported for the benchmark scripts
+from freamer_rl.suite_report import first_reaching, mean_std, plot_bands  # noqa: F401
 
 ROW_KEYS = ("frames", "episodes", "success_rate", "return_mean")
 
@@ -95,60 +97,3 @@ def run_jobs(jobs: list[tuple[Callable[[dict], dict], dict]], workers: int = 2, 
         for j in jobs:
             report(_run_cached(j))
     return results
-
-
-def first_reaching(rows: list[dict], key: str, target: float) -> tuple[int | None, int | None]:
-    """``(frames, episodes)`` of the first row whose windowed ``key`` is >= ``target``, or ``(None, None)``."""
-    for r in rows:
-        v = r.get(key)
-        if v is not None and not (isinstance(v, float) and math.isnan(v)) and v >= target:
-            return r["frames"], r["episodes"]
-    return None, None
-
-
-def mean_std(values: list, empty: str = "n/a") -> str:
-    """``"mean ± sample std"`` of the values that are not None/NaN (one value: itself; none: ``empty``)."""
-    vals = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
-    if not vals:
-        return empty
-    if len(vals) == 1:
-        return f"{vals[0]:,.2f}"
-    return f"{statistics.mean(vals):,.2f} ± {statistics.stdev(vals):,.2f}"
-
-
-def plot_bands(results: list[dict], path: Path, y_key: str, title: str, *, x_key: str = "frames",
-               target: float | None = None, ylabel: str | None = None, colors: dict | None = None) -> None:
-    """Per method: the mean curve across seeds with a min-max band (curves are put on a common x grid)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    methods = sorted({r["method"] for r in results})
-    for i, m in enumerate(methods):
-        runs = [r for r in results if r["method"] == m and r["rows"]]
-        if not runs:
-            continue
-        x_max = min(r["rows"][-1][x_key] for r in runs)
-        grid = np.linspace(0, x_max, 200)
-        ys = []
-        for r in runs:
-            xs = np.array([row[x_key] for row in r["rows"]], dtype=float)
-            vs = np.array([row[y_key] for row in r["rows"]], dtype=float)
-            ok = ~np.isnan(vs)
-            ys.append(np.interp(grid, xs[ok], vs[ok], left=np.nan) if ok.any() else np.full_like(grid, np.nan))
-        ys = np.array(ys)
-        color = (colors or {}).get(m, f"C{i}")
-        ax.plot(grid, np.nanmean(ys, axis=0), color=color, label=f"{m} (mean of {len(runs)} seeds)")
-        ax.fill_between(grid, np.nanmin(ys, axis=0), np.nanmax(ys, axis=0), color=color, alpha=0.2, lw=0)
-    if target is not None:
-        ax.axhline(target, color="k", ls=":", lw=0.8)
-    ax.set_xlabel(x_key)
-    ax.set_ylabel(ylabel or y_key)
-    ax.set_title(title)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)

@@ -6,6 +6,7 @@
     freamer-rl eval runs/<health run>                     (any domain: the checkpoint records its trainer)
     freamer-rl params recipes/minigrid_multiroom_n2s4_clip.yaml
     freamer-rl health anomaly runs/<health run> --hours 48
+    freamer-rl suite recipes/suites/n2s4_baselines.yaml --jobs 2    (recipes x envs x seeds, resumable; see suite.py)
 
 ``train``/``params`` dispatch on the recipe's ``trainer:`` key and ``eval`` on the checkpoint's trainer through the
 registry :data:`freamer_rl.trainers.TRAINERS` (``freamer-rl health train`` is an alias of ``train``).
@@ -52,6 +53,15 @@ def _parser() -> argparse.ArgumentParser:
     p_chain.add_argument("chain", help="path to a chain YAML (freamer_rl.chain)")
     p_chain.add_argument("overrides", nargs="*", help="dotted overrides of the chain file, e.g. seed=1")
 
+    p_suite = sub.add_parser(
+        "suite", help="a benchmark suite: recipes x envs x seeds, resumable; CSV/Markdown tables and learning curves"
+    )
+    p_suite.add_argument("suite", help="path to a suite YAML (freamer_rl.suite)")
+    p_suite.add_argument("--jobs", type=int, default=1, help="runs trained at a time, one process each (default 1)")
+    p_suite.add_argument("--output", default=None, help="results folder (default: the suite's output, results/<name>)")
+    p_suite.add_argument("--report-only", action="store_true", help="rebuild tables and plots without training")
+    p_suite.add_argument("--dry-run", action="store_true", help="list the runs and their status; train nothing")
+
     p_eval = sub.add_parser("eval", help="evaluate a checkpoint of any domain")
     p_eval.add_argument("checkpoint", help="a checkpoint .pt file or a run directory (uses its latest checkpoint)")
     p_eval.add_argument("--episodes", type=int, default=20)
@@ -91,6 +101,8 @@ def _run(args: argparse.Namespace) -> int:
         logger.info("chain finished: %d stages, %d frames, last stage success %s | %s", len(rows), last["chain_frames"],
                     "n/a" if rate is None else f"{rate:.3f}", Path(last["run_dir"]).parent / "chain_summary.md")
         return 0
+    if args.command == "suite":
+        return _suite(args)
     if args.command == "eval":
         from freamer_rl.evaluate import evaluate_any
 
@@ -114,6 +126,28 @@ def _run(args: argparse.Namespace) -> int:
         sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n" + OFFLINE_NOTE + "\n")
         return 0
     raise AssertionError(args.command)
+
+
+def _suite(args: argparse.Namespace) -> int:
+    """``freamer-rl suite``: the dry-run listing, or train + report; 1 when runs failed (the others still ran)."""
+    from freamer_rl.suite import describe, plan_suite, run_suite
+
+    if args.dry_run:
+        suite, root, runs = plan_suite(args.suite, args.output)
+        lines = [f"suite {suite.name}: {len(runs)} runs -> {root}"]
+        for r in describe(runs):
+            state = {"new": "new", "done": f"done ({r['frames']:,} frames)",
+                     "partial": f"partial ({r['frames']:,} frames)"}.get(r["status"], f"failed: {r['error']}")
+            lines.append(f"  {r['label']:<20} {r['env']:<32} seed {r['seed']:<3} {state}")
+        sys.stdout.write("\n".join(lines) + "\n")
+        return 0
+    result = run_suite(args.suite, jobs=args.jobs, output=args.output, report_only=args.report_only)
+    sys.stdout.write(f"{Path(result['output']) / 'summary.md'}\n")
+    if result["failed"]:
+        sys.stderr.write(f"{len(result['failed'])} of {len(result['runs'])} runs failed (see runs.csv): "
+                         f"{', '.join(result['failed'])}\n")
+        return 0 if args.report_only else 1
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:
