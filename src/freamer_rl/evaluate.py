@@ -43,13 +43,22 @@ def evaluate(
     modules = build_modules(cfg)
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()
+    result = run_episodes(cfg, modules.policy, modules.primers(), episodes=episodes, deterministic=deterministic,
+                          num_envs=num_envs, seed=seed, max_steps=max_steps)  # fmt: skip
+    return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
+
+
+@torch.no_grad()
+def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, deterministic: bool = False,
+                 num_envs: int | None = None, seed: int = 12345, max_steps: int = 100_000) -> dict[str, Any]:
+    """``episodes`` complete episodes of ``policy`` in the config's env (every trainer's evaluator uses this)."""
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
-    env = make_batched_env(cfg, modules.primers(), seed, num_envs=n_envs)
+    env = make_batched_env(cfg, primers, seed, num_envs=n_envs)
     success_fn = env_registry.get_adapter(cfg.env.adapter).success
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     try:
         with set_exploration_type(mode):
-            per_env = _episodes_per_env(env, modules.policy, n_envs, -(-episodes // n_envs), success_fn, max_steps)
+            per_env = _episodes_per_env(env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps)
     finally:
         env.close()
     # episode k of every env before episode k + 1 of any: choosing by finishing order would favour short episodes
@@ -58,7 +67,6 @@ def evaluate(
         raise CheckpointError(f"no episode finished within {max_steps} steps")
     succ = [e["success"] for e in chosen if e["success"] is not None]
     return {
-        "checkpoint": str(path),
         "env": cfg.env.id,
         "episodes": len(chosen),
         # NaN when the env has no notion of success (e.g. CartPole): see EnvAdapter.success
@@ -66,7 +74,6 @@ def evaluate(
         "return_mean": sum(e["return"] for e in chosen) / len(chosen),
         "length_mean": sum(e["length"] for e in chosen) / len(chosen),
         "deterministic": deterministic,
-        "frames_trained": ckpt.get("frames"),
     }
 
 

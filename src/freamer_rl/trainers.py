@@ -19,6 +19,8 @@ from typing import Any
 
 from freamer_rl.config import ConfigError, FreamerConfig
 from freamer_rl.errors import CheckpointError, FreamerError
+from freamer_rl.baselines.dreamer import DreamerConfig, dreamer_params, evaluate_dreamer, train_dreamer
+from freamer_rl.baselines.config import PPOBaselineConfig
 from freamer_rl.health.config import HealthConfig
 
 __all__ = ["TrainerSpec", "TRAINERS", "get_trainer", "trainer_of_checkpoint", "resolve_checkpoint"]
@@ -82,9 +84,31 @@ def _health_params(cfg: HealthConfig) -> list[dict]:
     return parameter_table(build_agent(cfg))
 
 
+# -- TorchRL baselines (freamer_rl.baselines) -----------------------------------------------------------------------
+def _ppo_baseline_train(cfg: Any, run_dir: str | Path | None, *, resume: bool = True) -> dict[str, Any]:
+    from freamer_rl.baselines.ppo import train_ppo_baseline
+
+    return train_ppo_baseline(cfg, run_dir, resume=resume)
+
+
+def _ppo_baseline_evaluate(path: Path, **options: Any) -> dict[str, Any]:
+    from freamer_rl.baselines.ppo import evaluate_ppo_baseline
+
+    return evaluate_ppo_baseline(path, **options)
+
+
+def _ppo_baseline_params(cfg: Any) -> list[dict]:
+    from freamer_rl.baselines.ppo import ppo_baseline_params
+
+    return ppo_baseline_params(cfg)
+
+
 TRAINERS: dict[str, TrainerSpec] = {
     "minigrid_ppo": TrainerSpec(FreamerConfig, _minigrid_train, _minigrid_evaluate, _minigrid_params, "freamer_rl/1"),
     "health": TrainerSpec(HealthConfig, _health_train, _health_evaluate, _health_params, "freamer_rl.health/1"),
+    "dreamer_v3": TrainerSpec(DreamerConfig, train_dreamer, evaluate_dreamer, dreamer_params, "freamer_rl/1"),
+    "ppo_baseline": TrainerSpec(PPOBaselineConfig, _ppo_baseline_train, _ppo_baseline_evaluate, _ppo_baseline_params,
+                                "freamer_rl/1"),
 }
 
 
