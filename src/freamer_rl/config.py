@@ -166,6 +166,10 @@ class PPOConfig:
 @dataclass
 class CollectorConfig:
     num_collectors: int = 1  # > 1: TorchRL multi-process synchronous collection
+    backend: str = "local"  # local: this machine's processes | ray: Ray actors (the `ray` extra), here or a cluster
+    ray_address: str | None = None  # None: start a local Ray instance; "auto" or "host:6379": join a running cluster
+    ray_num_cpus: int | None = None  # CPUs of a locally started Ray instance (None: all); only with ray_address None
+    ray_collector_cpus: float = 1.0  # CPUs Ray reserves per collector actor
 
 
 @dataclass

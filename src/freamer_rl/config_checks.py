@@ -23,7 +23,7 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = ["RANGES", "check_recipe_file", "check_device_name", "resolve_device", "config_numbers", "check_numbers",
-           "check_model_shapes", "check_names"]  # fmt: skip
+           "check_model_shapes", "check_names", "check_ray_backend"]  # fmt: skip
 
 
 class _DuplicateKey(Exception):
@@ -162,6 +162,7 @@ RANGES: dict[str, tuple[Callable[[Any], bool], str]] = {
     "ogm.alpha": (_positive, "> 0"),
     "ogm.lr_scale": (_positive, "> 0"),
     "ogm.ema": (lambda v: 0 <= v < 1, "in [0, 1)"),
+    "collector.ray_collector_cpus": (_positive, "> 0"),
 }
 _INT_DEFAULT_RANGE = (lambda v: v >= 1, ">= 1")
 _FLOAT_DEFAULT_RANGE = (lambda v: True, "")
@@ -237,6 +238,7 @@ def check_names(cfg: FreamerConfig) -> None:
         if m not in MODALITIES:
             raise ConfigError(f"model.flow.gate_init: unknown modality '{m}'")
     _check_machinery_names(cfg)
+    _check_collector(cfg.collector)
     if cfg.logging.backend not in ("csv", "wandb", "tensorboard"):
         raise ConfigError(f"logging.backend: expected csv, wandb or tensorboard, got {cfg.logging.backend!r}")
 
@@ -271,3 +273,33 @@ def _check_machinery_names(cfg: FreamerConfig) -> None:
                           f"modality and vision or state in model.modalities {cfg.model.modalities}; set it to 0")
     if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
         raise ConfigError("shaping.novelty.keys: got [], give at least one observation entry to hash")
+
+
+def _check_collector(c: Any) -> None:
+    """``collector.backend`` and the Ray fields (whether ray is installed is checked when a run starts)."""
+    if c.backend not in ("local", "ray"):
+        raise ConfigError(f"collector.backend: expected local or ray, got {c.backend!r}")
+    if c.ray_address is not None and c.ray_num_cpus is not None:
+        raise ConfigError(f"collector.ray_num_cpus: got {c.ray_num_cpus}, but collector.ray_address="
+                          f"{c.ray_address!r} joins a running Ray cluster, whose CPUs are set by `ray start "
+                          "--num-cpus`; leave ray_num_cpus unset")  # fmt: skip
+    if c.ray_address is not None and not c.ray_address.strip():
+        raise ConfigError("collector.ray_address: got an empty string; give auto or host:6379, "
+                          "or leave it unset to start a local Ray instance")  # fmt: skip
+
+
+def check_ray_backend(section: Any, policy: Any) -> None:
+    """``collector.backend: ray`` when a run starts: ray installed, the policy on the CPU (the actors run it there).
+
+    Checked here rather than while loading, so that a run trained through Ray still loads and evaluates where ray
+    is not installed.
+    """
+    import importlib.util
+
+    if importlib.util.find_spec("ray") is None:
+        raise ConfigError('collector.backend: got \'ray\', but ray is not installed; pip install -c constraints.txt '
+                          '-e ".[ray]" (or collector.backend=local)')  # fmt: skip
+    devices = {p.device.type for p in policy.parameters()}
+    if devices - {"cpu"}:
+        raise ConfigError(f"collector.backend: 'ray' runs the policy in CPU actors, but it is on {sorted(devices)}; "
+                          "use run.device=cpu with the ray backend")  # fmt: skip
