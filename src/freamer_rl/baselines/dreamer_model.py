@@ -326,6 +326,10 @@ class DreamerLearner:
     slow-critic regulariser; each step through :func:`freamer_rl.optim.optimizer_step`.
     """
 
+    #: the scalars :meth:`update` returns (progress.csv columns, in this order)
+    LOG_KEYS = ("loss_model_kl", "loss_model_reco", "loss_model_reward", "loss_actor", "loss_value", "loss_model_dyn",
+                "loss_model_rep", "loss_model_continue", "actor_entropy", "return_scale", "imagined_return")
+
     def __init__(self, nets: DreamerNets, d) -> None:
         from torchrl.objectives import DreamerV3ActorLoss, DreamerV3ModelLoss, DreamerV3ValueLoss, SoftUpdate
         from torchrl.objectives.utils import ValueEstimators
@@ -387,7 +391,7 @@ class DreamerLearner:
                "loss_actor": actor_losses["loss_actor"], "actor_entropy": actor_losses["actor_entropy"],
                "return_scale": actor_losses["return_scale"], "loss_value": value_losses["loss_value"],
                "imagined_return": imagined["lambda_target"].mean()}  # fmt: skip
-        return {k: v.detach().reshape(()) for k, v in out.items()}
+        return {k: out[k].detach().reshape(()) for k in self.LOG_KEYS}
 
     def state_dict(self) -> dict:
         return {"optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
@@ -489,8 +493,8 @@ class DreamerTrainer(RunLoop):
         self.updates += n
         if n:
             self._last = {k: float(v) / n for k, v in sums.items()}
-        names = ("loss_model_kl", "loss_model_reco", "loss_model_reward", "loss_actor", "loss_value")
-        return {**{k: math.nan for k in names}, **self._last, "updates": float(self.updates)}
+        # the same columns before the first update (prefill, also after a resume): NaN until trained
+        return {**{k: math.nan for k in DreamerLearner.LOG_KEYS}, **self._last, "updates": float(self.updates)}
 
     def _extra_row(self) -> dict:
         return {"replay_frames": len(self.replay)}
@@ -523,7 +527,11 @@ def _check_architecture(ckpt: dict, cfg, path) -> None:
 @torch.no_grad()
 def evaluate_checkpoint(path, *, episodes: int = 20, deterministic: bool = False, num_envs: int | None = None,
                         seed: int = 12345) -> dict:
-    """Episodes of a DreamerV3 checkpoint's collection policy (online posterior + actor) in its config's env."""
+    """Episodes of a DreamerV3 checkpoint's collection policy (online posterior + actor) in its config's env.
+
+    ``deterministic``: the actor takes its most likely action; the posterior latent is still sampled (as in
+    DreamerV3's own evaluation).
+    """
     from freamer_rl.baselines.dreamer import DreamerConfig
     from freamer_rl.checkpoint import load_checkpoint
     from freamer_rl.config import ConfigError, config_from_dict
