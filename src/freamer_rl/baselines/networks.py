@@ -37,6 +37,9 @@ class ObservationEncoder(nn.Module):
         self.conv = None
         if image_index is not None:
             h, w, c = self.shapes[image_index]
+            if min(h, w) < 36:  # 8x8 stride 4, 4x4 stride 2, 3x3: the smallest frame that leaves one cell
+                raise EnvSetupError(f"network.kind=cnn: the image is {h}x{w}; the Nature-DQN conv stack needs at "
+                                    "least 36x36")  # fmt: skip
             c1, c2, c3 = channels
             self.conv = nn.Sequential(nn.Conv2d(c, c1, 8, stride=4), nn.ReLU(), nn.Conv2d(c1, c2, 4, stride=2),
                                       nn.ReLU(), nn.Conv2d(c2, c3, 3, stride=1), nn.ReLU(), nn.Flatten())  # fmt: skip
