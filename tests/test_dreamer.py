@@ -127,3 +127,23 @@ def test_validation_names_the_field(override, field):
 def test_unknown_observation_key_is_named():
     with pytest.raises(ConfigError, match="dreamer.observation_keys"):
         build_nets(load_config(RECIPE, [*TINY, "dreamer.observation_keys=[pixels]"]))
+
+
+def test_crafter_pixels_through_the_cnn_encoder_and_decoder():
+    pytest.importorskip("crafter")
+    cfg = load_config(ROOT / "recipes" / "baselines" / "dreamer_v3_crafter.yaml",
+                      ["env.num_envs=2", "dreamer.deter=32", "dreamer.hidden=32", "dreamer.cnn_depth=4",
+                       "dreamer.frames_per_batch=32", "dreamer.batch_size=2", "dreamer.sequence_length=8",
+                       "dreamer.prefill_frames=32", "dreamer.replay_capacity=1000"])  # fmt: skip
+    torch.manual_seed(0)
+    nets = build_nets(cfg)
+    assert nets.image_key == "pixels" and not nets.vector_keys
+    env = make_batched_env(cfg, [nets.primer()], seed=0)
+    with torch.no_grad():
+        data = env.rollout(16, nets.policy, break_when_any_done=False)
+    env.close()
+    learner = DreamerLearner(nets, cfg.dreamer)
+    replay = SequenceReplay(1000, 16, 2, 8, ["pixels"])
+    replay.extend(data)
+    out = learner.update(replay.sample())
+    assert all(torch.isfinite(v) for v in out.values()) and out["loss_model_reco"] > 0
