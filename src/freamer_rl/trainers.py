@@ -20,7 +20,7 @@ from typing import Any
 from freamer_rl.config import ConfigError, FreamerConfig
 from freamer_rl.errors import CheckpointError, FreamerError
 from freamer_rl.baselines.dreamer import DreamerConfig, dreamer_params, evaluate_dreamer, train_dreamer
-from freamer_rl.baselines.config import PPOBaselineConfig
+from freamer_rl.baselines.config import ImpalaConfig, PPOBaselineConfig
 from freamer_rl.health.config import HealthConfig
 
 __all__ = ["TrainerSpec", "TRAINERS", "get_trainer", "trainer_of_checkpoint", "resolve_checkpoint"]
@@ -103,12 +103,31 @@ def _ppo_baseline_params(cfg: Any) -> list[dict]:
     return ppo_baseline_params(cfg)
 
 
+def _impala_train(cfg: Any, run_dir: str | Path | None, *, resume: bool = True) -> dict[str, Any]:
+    from freamer_rl.baselines.impala import train_impala
+
+    return train_impala(cfg, run_dir, resume=resume)
+
+
+def _impala_evaluate(path: Path, **options: Any) -> dict[str, Any]:
+    from freamer_rl.baselines.impala import evaluate_impala
+
+    return evaluate_impala(path, **options)
+
+
+def _impala_params(cfg: Any) -> list[dict]:
+    from freamer_rl.baselines.impala import impala_params
+
+    return impala_params(cfg)
+
+
 TRAINERS: dict[str, TrainerSpec] = {
     "minigrid_ppo": TrainerSpec(FreamerConfig, _minigrid_train, _minigrid_evaluate, _minigrid_params, "freamer_rl/1"),
     "health": TrainerSpec(HealthConfig, _health_train, _health_evaluate, _health_params, "freamer_rl.health/1"),
     "dreamer_v3": TrainerSpec(DreamerConfig, train_dreamer, evaluate_dreamer, dreamer_params, "freamer_rl/1"),
     "ppo_baseline": TrainerSpec(PPOBaselineConfig, _ppo_baseline_train, _ppo_baseline_evaluate, _ppo_baseline_params,
                                 "freamer_rl/1"),
+    "impala": TrainerSpec(ImpalaConfig, _impala_train, _impala_evaluate, _impala_params, "freamer_rl/1"),
 }
 
 
