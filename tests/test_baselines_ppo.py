@@ -107,3 +107,15 @@ def test_ppo_cnn_on_crafter_logs_the_score_and_resumes(tmp_path):
     assert (tmp_path / "run" / "metrics" / "attempt_02").is_dir()
     rows = TRAINERS["ppo_baseline"].params(load_config(CNN_RECIPE, tiny))
     assert rows[-1]["component"] == "Total" and rows[-1]["trainable"] == sum(r["trainable"] for r in rows[:-1])
+
+
+def test_resume_refuses_another_network(tmp_path):
+    from freamer_rl.errors import CheckpointError
+
+    tiny = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32",
+            "ppo.sequence_length=8", "network.hidden=16", "run.total_frames=64", "logging.progress_bar=false"]
+    TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, tiny), tmp_path / "run")
+    # same weight shapes (direction and grid swapped), other meaning: refused by name, not loaded silently
+    with pytest.raises(CheckpointError, match="network.observation_keys"):
+        TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, [*tiny, "network.observation_keys=[direction,grid]",
+                                                                "run.total_frames=128"]), tmp_path / "run")

@@ -66,7 +66,8 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)  # mkstemp creates 0600 files; checkpoints get the permissions an ordinary open() would give
 
 # Config sections whose change makes a checkpoint incompatible with a run.
-_STRUCTURAL_SECTIONS = ("model", "env")
+# "network": the baselines' (freamer_rl.baselines); absent from FreamerV1 configs, so never a difference there
+_STRUCTURAL_SECTIONS = ("model", "env", "network")
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -357,7 +358,8 @@ def _with_defaults(saved: dict, section: str) -> dict:
     before ``model.flow.adaptive_steps`` existed was trained with it off (the default), so it still matches."""
     from freamer_rl.config import FreamerConfig, _merge, config_to_dict
 
-    return _merge(config_to_dict(FreamerConfig())[section], saved)
+    defaults = config_to_dict(FreamerConfig()).get(section)
+    return saved if defaults is None else _merge(defaults, saved)
 
 
 def check_checkpoint_config(saved: dict, current: dict, path: Path) -> None:
