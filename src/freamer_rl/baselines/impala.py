@@ -16,7 +16,8 @@ the off-policy correction vanishes silently.
 
 Progress columns: ``loss_objective``, ``loss_critic``, ``loss_entropy``, ``entropy``, ``grad_norm``, ``rho_mean``
 (mean unclipped ratio pi/mu), ``rho_clipped`` (fraction of steps with rho > ``impala.rho_clip``) and ``policy_lag``
-(mean number of learner updates between the weights that collected each frame and the learner's; 0 = on-policy).
+(mean number of batches the learner trained on between the weights that collected each frame and its current ones;
+0 = on-policy; fractional because the actors take new weights mid-rollout).
 The lag is measured by a version counter the actors' policy writes into every step (``policy_version``).
 
     freamer-rl train recipes/baselines/impala_n2s4.yaml run.seed=1
@@ -49,7 +50,7 @@ VERSION_KEY = "policy_version"
 
 
 class PolicyVersion(nn.Module):
-    """``(action [*B, ...]) -> policy_version [*B]``: the number of learner updates behind the weights acting now.
+    """``(action [*B, ...]) -> policy_version [*B]``: the number of batches learnt from by the weights acting now.
 
     Its ``version`` buffer travels with the policy's weights to the actor processes (``update_policy_weights_``),
     so every collected frame records which weights chose its action.
