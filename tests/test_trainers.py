@@ -23,6 +23,22 @@ TINY = {
                      ["run.total_frames=256"]),
     "health": (ROOT / "recipes" / "health" / "health_mlp.yaml", [*HEALTH_TINY, "collect.iterations=1"],
                ["collect.iterations=2"]),
+    "ppo_baseline": (ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
+                     ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64",
+                      "ppo.minibatch_size=32", "ppo.sequence_length=8", "network.hidden=16", "run.total_frames=64",
+                      "logging.checkpoint_every_frames=64", "logging.progress_bar=false"], ["run.total_frames=128"]),
+    "dreamer_v3": (ROOT / "recipes" / "baselines" / "dreamer_v3_n2s4.yaml",
+                   ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "dreamer.stoch_categoricals=4",
+                    "dreamer.stoch_classes=4", "dreamer.deter=32", "dreamer.hidden=32", "dreamer.mlp_layers=1",
+                    "dreamer.frames_per_batch=64", "dreamer.batch_size=4", "dreamer.sequence_length=8",
+                    "dreamer.train_every=32", "dreamer.prefill_frames=64", "dreamer.replay_capacity=1000",
+                    "dreamer.horizon=5", "run.total_frames=64", "logging.checkpoint_every_frames=64",
+                    "logging.progress_bar=false"], ["run.total_frames=128"]),
+    # keeps the recipe's two asynchronous actor processes
+    "impala": (ROOT / "recipes" / "baselines" / "impala_n2s4.yaml",
+               ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "network.hidden=16", "ppo.frames_per_batch=64",
+                "ppo.sequence_length=8", "ppo.minibatch_size=32", "run.total_frames=128",
+                "logging.checkpoint_every_frames=64", "logging.progress_bar=false"], ["run.total_frames=256"]),
 }  # fmt: skip
 
 
