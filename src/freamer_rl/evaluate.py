@@ -34,11 +34,7 @@ def evaluate(
 ) -> dict[str, Any]:
     """Run ``episodes`` complete episodes with the checkpoint's policy (sampling unless ``deterministic``)."""
     path = Path(checkpoint)
-    ckpt = load_checkpoint(path)
-    try:
-        cfg = config_from_dict(ckpt["config"])
-    except ConfigError as err:
-        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {err}") from err
+    ckpt, cfg = read_checkpoint_config(path)
     torch.set_num_threads(cfg.run.threads)
     modules = build_modules(cfg)
     load_model_state(modules, ckpt["model"], path)
@@ -46,6 +42,16 @@ def evaluate(
     result = run_episodes(cfg, modules.policy, modules.primers(), episodes=episodes, deterministic=deterministic,
                           num_envs=num_envs, seed=seed, max_steps=max_steps)  # fmt: skip
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
+
+
+def read_checkpoint_config(path: Path, schema: type | None = None) -> tuple[dict[str, Any], Any]:
+    """A checkpoint (read with ``weights_only``) and its config built with ``schema`` (default FreamerConfig)."""
+    ckpt = load_checkpoint(path)
+    try:
+        cfg = config_from_dict(ckpt["config"], schema)
+    except ConfigError as err:
+        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {err}") from err
+    return ckpt, cfg
 
 
 @torch.no_grad()

@@ -11,10 +11,8 @@ import torch
 from torchrl.modules import ActorValueOperator
 
 from freamer_rl.baselines.networks import build_actor_critic
-from freamer_rl.checkpoint import load_checkpoint
-from freamer_rl.config import ConfigError, config_from_dict
 from freamer_rl.errors import CheckpointError
-from freamer_rl.optim import StepStats
+from freamer_rl.optim import StepStats, optimizer_step
 from freamer_rl.runloop import RunLoop
 
 logger = logging.getLogger(__name__)
@@ -57,6 +55,26 @@ class ActorCriticRunLoop(RunLoop):
             group["lr"] = lr
         return lr
 
+    def _minibatch_steps(self, minibatches) -> dict[str, float]:
+        """One shared optimiser step per minibatch (the trunk, then ``self.loss`` on the heads); mean detached logs.
+
+        ``minibatches``: TensorDicts ``[N]`` holding the observations, ``action``, ``action_log_prob``,
+        ``advantage`` and ``value_target``.
+        """
+        sums: dict[str, float] = {}
+        count = 0
+        for mb in minibatches:
+            loss_td = self.loss(self.common(mb))
+            total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
+            grad_norm = optimizer_step(total, self.optimizer, self.params, self.cfg.ppo.max_grad_norm,
+                                       self.step_stats, foreach=True)  # non-finite: skipped, counted
+            logs = {"loss_total": total.detach(), "grad_norm": grad_norm,
+                    **{k: v.detach() for k, v in loss_td.items() if v.numel() == 1}}  # fmt: skip
+            for k, v in logs.items():
+                sums[k] = sums.get(k, 0.0) + float(v)
+            count += 1
+        return {k: v / max(count, 1) for k, v in sums.items()}
+
     def _model_state(self) -> dict[str, Any]:
         return {"model": self.net.state_dict(), "optimizer": self.optimizer.state_dict(),
                 "steps": self.step_stats.state_dict()}  # fmt: skip
@@ -81,13 +99,9 @@ class ActorCriticRunLoop(RunLoop):
 
 def evaluate_actor_critic(path: Path, schema: type, **options: Any) -> dict[str, Any]:
     """Episodes with a baseline checkpoint's policy (``options`` as :func:`freamer_rl.evaluate.run_episodes`)."""
-    from freamer_rl.evaluate import run_episodes  # noqa: PLC0415
+    from freamer_rl.evaluate import read_checkpoint_config, run_episodes  # noqa: PLC0415
 
-    ckpt = load_checkpoint(path)
-    try:
-        cfg = config_from_dict(ckpt["config"], schema)
-    except ConfigError as err:
-        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {err}") from err
+    ckpt, cfg = read_checkpoint_config(path, schema)
     torch.set_num_threads(cfg.run.threads)
     net = build_network(cfg)
     try:

@@ -237,7 +237,8 @@ class DreamerNets(nn.Module):
         if self.vector_decoder is not None:
             wm.append(TensorDictModule(self.vector_decoder, in_keys=feats, out_keys=[("next", "reco_obs_features")]))
         if self.image_decoder is not None:
-            wm.append(TensorDictModule(self.image_decoder, in_keys=feats, out_keys=[("next", f"reco_{self.image_key}")]))
+            reco = ("next", f"reco_{self.image_key}")
+            wm.append(TensorDictModule(self.image_decoder, in_keys=feats, out_keys=[reco]))
         wm += self._heads(nxt)
         wm.append(TensorDictModule(self.continue_head, in_keys=feats, out_keys=[("next", "continue_pred")]))
         self.world_model = TensorDictSequential(*wm)
@@ -533,16 +534,9 @@ def evaluate_checkpoint(path, *, episodes: int = 20, deterministic: bool = False
     DreamerV3's own evaluation).
     """
     from freamer_rl.baselines.dreamer import DreamerConfig
-    from freamer_rl.checkpoint import load_checkpoint
-    from freamer_rl.config import ConfigError, config_from_dict
-    from freamer_rl.errors import CheckpointError
-    from freamer_rl.evaluate import run_episodes
+    from freamer_rl.evaluate import read_checkpoint_config, run_episodes
 
-    ckpt = load_checkpoint(path)
-    try:
-        cfg = config_from_dict(ckpt["config"], DreamerConfig)
-    except ConfigError as err:
-        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {err}") from err
+    ckpt, cfg = read_checkpoint_config(path, DreamerConfig)
     torch.set_num_threads(cfg.run.threads)
     nets = build_nets(cfg)
     _check_architecture(ckpt, cfg, path)

@@ -41,7 +41,6 @@ from freamer_rl.baselines.common import (
     evaluate_actor_critic,
 )
 from freamer_rl.baselines.config import ImpalaConfig
-from freamer_rl.optim import optimizer_step
 from freamer_rl.runloop import resolve_run_dir
 
 __all__ = ["ImpalaConfig", "ImpalaTrainer", "PolicyVersion", "evaluate_impala", "impala_params", "train_impala"]
@@ -115,7 +114,6 @@ class ImpalaTrainer(ActorCriticRunLoop):
         return adv, target, (log_pi - log_mu).exp()
 
     def _learn(self, data: TensorDictBase) -> dict[str, float]:
-        p = self.cfg.ppo
         self._current_lr()
         adv, target, rho = self.vtrace(data)
         # rho_clipped: ratios clipped by more than float noise (on-policy ratios are 1 +- 1e-6)
@@ -124,19 +122,9 @@ class ImpalaTrainer(ActorCriticRunLoop):
         if VERSION_KEY in data.keys():  # noqa: SIM118 (a TensorDict)
             diag["policy_lag"] = self.batches - data[VERSION_KEY].float().mean()
         flat = data.exclude("next").set("advantage", adv).set("value_target", target).reshape(-1)
-        sums: dict[str, float] = {}
         splits = torch.randperm(flat.numel(), device=flat.device).chunk(self.cfg.impala.minibatches)
-        for idx in splits:
-            loss_td = self.loss(self.common(flat[idx]))
-            total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
-            grad_norm = optimizer_step(total, self.optimizer, self.params, p.max_grad_norm, self.step_stats,
-                                       foreach=True)  # fmt: skip
-            logs = {"loss_total": total.detach(), "grad_norm": grad_norm,
-                    **{k: v.detach() for k, v in loss_td.items() if v.numel() == 1}}  # fmt: skip
-            for k, v in logs.items():
-                sums[k] = sums.get(k, 0.0) + float(v)
+        out = self._minibatch_steps(flat[idx] for idx in splits)
         self.stamp.module.version.fill_(self.batches + 1)  # the weights update_policy_weights_() sends next
-        out = {k: v / len(splits) for k, v in sums.items()}
         return {**out, **{k: float(v) for k, v in diag.items()}}
 
 

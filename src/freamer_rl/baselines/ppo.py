@@ -23,7 +23,6 @@ from torchrl.objectives.value import GAE
 
 from freamer_rl.baselines.common import ActorCriticRunLoop, actor_critic_params, evaluate_actor_critic
 from freamer_rl.baselines.config import PPOBaselineConfig
-from freamer_rl.optim import optimizer_step
 from freamer_rl.runloop import resolve_run_dir
 
 __all__ = ["PPOBaselineConfig", "PPOBaselineTrainer", "train_ppo_baseline", "evaluate_ppo_baseline"]
@@ -50,21 +49,8 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         with torch.no_grad():
             data = self.gae(data)
         flat = data.exclude("next").reshape(-1)
-        sums: dict[str, float] = {}
-        count = 0
-        for _ in range(p.epochs):
-            for idx in torch.randperm(flat.numel(), device=flat.device).split(p.minibatch_size):
-                mb = self.common(flat[idx])
-                loss_td = self.loss(mb)
-                total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
-                grad_norm = optimizer_step(total, self.optimizer, self.params, p.max_grad_norm, self.step_stats,
-                                           foreach=True)  # fmt: skip
-                logs = {"loss_total": total.detach(), "grad_norm": grad_norm,
-                        **{k: v.detach() for k, v in loss_td.items() if v.numel() == 1}}  # fmt: skip
-                for k, v in logs.items():
-                    sums[k] = sums.get(k, 0.0) + float(v)
-                count += 1
-        return {k: v / count for k, v in sums.items()}
+        epochs = (torch.randperm(flat.numel(), device=flat.device).split(p.minibatch_size) for _ in range(p.epochs))
+        return self._minibatch_steps(flat[idx] for epoch in epochs for idx in epoch)
 
 
 def train_ppo_baseline(cfg: PPOBaselineConfig, run_dir: str | Path | None = None, *,
