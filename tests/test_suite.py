@@ -131,5 +131,10 @@ def test_suite_cli_user_error_is_one_line(tmp_path, capsys):
 
 def test_example_suite_plans(tmp_path):
     suite, _, runs = plan_suite(ROOT / "recipes" / "suites" / "n2s4_baselines.yaml", tmp_path)
-    assert [r.label for r in runs] == ["freamer"] * 3 and [r.seed for r in runs] == [0, 1, 2]
+    labels = ["freamer", "freamer_machinery", "ppo_mlp", "impala", "dreamer_v3"]
+    assert [r.label for r in runs] == [lab for lab in labels for _ in range(3)]
+    assert [r.seed for r in runs] == [0, 1, 2] * len(labels)
     assert all(r.error is None and r.env == "MiniGrid-MultiRoom-N2-S4-v0" for r in runs)
+    # every suite shipped in recipes/suites plans without a config error (recipes of every trainer load)
+    for path in sorted((ROOT / "recipes" / "suites").glob("*.yaml")):
+        assert all(r.error is None for r in plan_suite(path, tmp_path / path.stem)[2]), path

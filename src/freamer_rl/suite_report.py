@@ -239,6 +239,8 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
                                "failed": sum(r["status"] == "failed" for r in runs)}  # fmt: skip
         for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps"):
             row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
+        row["crafter_score_per_seed"] = " / ".join("—" if _missing(r.get("crafter_score")) else
+                                                   f"{r['crafter_score']:.2f}" for r in done)  # fmt: skip
         for key in ("frames_to_95", "episodes_to_95"):
             reached = [r[key] for r in done if r.get(key) is not None]
             row[f"{key}_mean"] = statistics.mean(reached) if reached else None
@@ -267,19 +269,24 @@ def _to95(row: dict, key: str) -> str:
 
 def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     has_crafter = any(r["crafter_score_mean"] is not None for r in rows)
-    head = ["label", "env", "seeds done", "frames", "final success", "final return"]
-    head += ["Crafter score"] if has_crafter else []
-    head += ["episodes to 95% [per seed]", "frames to 95% [per seed]", "frames/s"]
+    # envs without a notion of success (Crafter, CartPole): no success or to-95% columns
+    has_success = any(r["success_rate_mean"] is not None for r in rows)
+    head = ["label", "env", "seeds done", "frames"] + (["final success"] if has_success else []) + ["final return"]
+    head += ["Crafter score [per seed]"] if has_crafter else []
+    head += ["episodes to 95% [per seed]", "frames to 95% [per seed]"] if has_success else []
+    head += ["frames/s"]
     note = ("Final values: mean (min–max) across the seeds done; to 95%: mean of the seeds that reached 95% success, "
             "then each seed's value (— not reached).")
     lines = [f"# Suite {name}", "", note, "",
              "| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * (len(head) - 2)]  # fmt: skip
     for r in rows:
         seeds = f"{r['seeds_done']}/{r['seeds']}" + (f" ({r['done_seeds']})" if r["done_seeds"] else "")
-        cells = [r["label"], r["env"], seeds, _cell(r, "frames", 0), _cell(r, "success_rate", 3),
-                 _cell(r, "return_mean", 2)]  # fmt: skip
-        cells += [_cell(r, "crafter_score", 2)] if has_crafter else []
-        cells += [_to95(r, "episodes_to_95"), _to95(r, "frames_to_95"), _cell(r, "fps", 0)]
+        cells = [r["label"], r["env"], seeds, _cell(r, "frames", 0)]
+        cells += [_cell(r, "success_rate", 3)] if has_success else []
+        cells += [_cell(r, "return_mean", 2)]
+        cells += [f"{_cell(r, 'crafter_score', 2)} [{r['crafter_score_per_seed']}]"] if has_crafter else []
+        cells += [_to95(r, "episodes_to_95"), _to95(r, "frames_to_95")] if has_success else []
+        cells += [_cell(r, "fps", 0)]
         lines.append("| " + " | ".join(cells) + " |")
     failed = [r for r in results if r["status"] == "failed"]
     if failed:
