@@ -119,3 +119,23 @@ def test_resume_refuses_another_network(tmp_path):
     with pytest.raises(CheckpointError, match="network.observation_keys"):
         TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, [*tiny, "network.observation_keys=[direction,grid]",
                                                                 "run.total_frames=128"]), tmp_path / "run")
+
+
+def test_resume_refuses_another_trainers_checkpoint_and_legacy_files_go_to_freamer(tmp_path):
+    from freamer_rl.checkpoint import latest_checkpoint
+    from freamer_rl.errors import CheckpointError
+    from freamer_rl.trainers import trainer_of_checkpoint
+
+    tiny = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32",
+            "ppo.sequence_length=8", "network.hidden=16", "run.total_frames=64", "logging.progress_bar=false"]
+    TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, tiny), tmp_path / "run")
+    impala = ROOT / "recipes" / "baselines" / "impala_n2s4.yaml"
+    # the same network and env, another trainer: refused by name instead of loading PPO's state into IMPALA
+    with pytest.raises(CheckpointError, match="trainer 'ppo_baseline'.*'impala'"):
+        TRAINERS["impala"].train(load_config(impala, [*tiny, "collector.num_collectors=1", "run.total_frames=128"]),
+                                 tmp_path / "run")  # fmt: skip
+    # a checkpoint without a "trainer" entry (written before it existed) is FreamerV1's, whatever reuses its format
+    ckpt = torch.load(latest_checkpoint(tmp_path / "run"), weights_only=True)
+    del ckpt["trainer"]
+    torch.save(ckpt, tmp_path / "legacy.pt")
+    assert trainer_of_checkpoint(tmp_path / "legacy.pt") == "minigrid_ppo"

@@ -118,6 +118,8 @@ def test_train_checkpoint_resume_evaluate(tmp_path):
     ("dreamer.observation_keys=[]", "dreamer.observation_keys"),
     ("dreamer.model_lr=0", "dreamer.model_lr"),
     ("dreamer.frames_per_batch=65", "dreamer.frames_per_batch"),
+    # 1,000 frames of capacity hold 31 whole 32-step sequences = 992 < 1,000 prefill: would never start training
+    ("dreamer.prefill_frames=1000", "dreamer.replay_capacity: .*whole sequences"),
 ])  # fmt: skip
 def test_validation_names_the_field(override, field):
     with pytest.raises(ConfigError, match=field.replace("(", r"\(")):

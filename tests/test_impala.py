@@ -173,3 +173,14 @@ def test_version_stamp_is_a_copy():
     out = stamp(torch.zeros(4, dtype=torch.long))
     stamp.version.fill_(3)  # the learner's next update: frames already stamped keep their version
     assert out.tolist() == [0, 0, 0, 0] and stamp(torch.zeros(2)).tolist() == [3, 3]
+
+
+def test_resume_refuses_another_optimizer(tmp_path):
+    from freamer_rl.errors import CheckpointError
+
+    one = [*TINY, "collector.num_collectors=1", "run.total_frames=64"]
+    TRAINERS["impala"].train(load_config(RECIPE, one), tmp_path / "run")
+    # Adam's moments loaded into RMSprop would crash at the first step (no 'square_avg'): refused by name instead
+    with pytest.raises(CheckpointError, match="impala.optimizer=adam"):
+        TRAINERS["impala"].train(load_config(RECIPE, [*one, "impala.optimizer=rmsprop", "run.total_frames=128"]),
+                                 tmp_path / "run")  # fmt: skip

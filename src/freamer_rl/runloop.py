@@ -9,7 +9,8 @@ checkpoints, the learning curve and ``summary.json``. A subclass provides the le
 * ``_learn(data) -> dict of floats`` -- everything done with one collected batch ``[*B, T]`` (advantages, updates);
 * ``_model_state()`` / ``_load_model_state(ckpt, path)`` -- its own checkpoint entries (model, optimiser, ...);
 * ``_extra_row()`` / ``_extra_summary()`` -- its own progress.csv columns and summary entries;
-* ``frames_per_batch`` and ``trainer_name`` (the checkpoint's ``"trainer"`` entry, :data:`freamer_rl.trainers.TRAINERS`).
+* ``frames_per_batch`` and ``trainer_name`` (the checkpoint's ``"trainer"`` entry, ``freamer_rl.trainers.TRAINERS``;
+  a resume refuses another trainer's checkpoint).
 
 It is built in two steps so the subclass can build its model between them: ``super().__init__(cfg, run_dir)``
 (common state, no files touched), then ``self._start(resume)`` (lock and open the run directory).
@@ -144,6 +145,10 @@ class RunLoop:
 
     def _resume(self, path: Path) -> None:
         ckpt = load_checkpoint(path)
+        saved = ckpt.get("trainer", self.trainer_name)  # older FreamerV1 checkpoints have no entry
+        if saved != self.trainer_name:  # e.g. a PPO run folder resumed with an IMPALA recipe of the same network
+            raise CheckpointError(f"checkpoint {path} was written by trainer {saved!r}, this recipe's trainer is "
+                                  f"{self.trainer_name!r}; use another run directory")  # fmt: skip
         check_checkpoint_config(ckpt["config"], config_to_dict(self.cfg), path)
         try:
             self._load_model_state(ckpt, path)

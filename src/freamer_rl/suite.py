@@ -276,11 +276,10 @@ def _execute(suite: str, todo: list[SuiteRun], jobs: int) -> list[SuiteRun]:
         if isinstance(err, Terminated):  # Ctrl-C reaches the workers itself; SIGTERM is passed on to them
             for process in list(getattr(pool, "_processes", {}).values()):
                 process.terminate()
-        pool.shutdown(wait=True, cancel_futures=True)
         raise
-    finally:
+    finally:  # every exit, an unexpected error included, stops the workers
         restore_sigterm(token)
-    pool.shutdown(wait=True)
+        pool.shutdown(wait=True, cancel_futures=True)
     return finished
 
 

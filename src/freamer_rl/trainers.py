@@ -160,7 +160,11 @@ def trainer_of_checkpoint(path: Path) -> str:
     ckpt = read_checkpoint(path)
     name = ckpt.get("trainer")
     if name is None:
-        by_format = {spec.checkpoint_format: n for n, spec in TRAINERS.items()}
+        # checkpoints written before the "trainer" entry are all FreamerV1's / health's: the first owner of a format
+        # (the baselines reuse "freamer_rl/1" but always write "trainer")
+        by_format: dict[str, str] = {}
+        for n, spec in TRAINERS.items():
+            by_format.setdefault(spec.checkpoint_format, n)
         name = by_format.get(ckpt.get("format", "freamer_rl/1"))
     if name not in TRAINERS:
         raise CheckpointError(f"checkpoint {path}: unknown trainer {name!r} / format {ckpt.get('format')!r} "

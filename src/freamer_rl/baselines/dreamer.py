@@ -100,9 +100,12 @@ def _check_section(d: DreamerSection, num_envs: int) -> None:
     if d.sequence_length > steps:
         raise ConfigError(f"dreamer.sequence_length: must be <= the steps per env per batch ({steps} = "
                           f"dreamer.frames_per_batch / env.num_envs), got {d.sequence_length}")  # fmt: skip
-    if d.replay_capacity < max(d.frames_per_batch, d.prefill_frames):
+    # the replay keeps whole [num_envs, steps] rows of one env: capacity_frames // steps sequences of `steps` frames
+    held = (d.replay_capacity // steps) * steps
+    if held < max(d.frames_per_batch, d.prefill_frames):
         raise ConfigError(f"dreamer.replay_capacity: must hold dreamer.frames_per_batch and dreamer.prefill_frames "
-                          f"({max(d.frames_per_batch, d.prefill_frames)}), got {d.replay_capacity}")  # fmt: skip
+                          f"({max(d.frames_per_batch, d.prefill_frames)}) in whole sequences of {steps} steps "
+                          f"(it holds {held} frames), got {d.replay_capacity}")  # fmt: skip
 
 
 def validate_dreamer(cfg: DreamerConfig) -> None:

@@ -41,6 +41,7 @@ from freamer_rl.baselines.common import (
     evaluate_actor_critic,
 )
 from freamer_rl.baselines.config import ImpalaConfig
+from freamer_rl.errors import CheckpointError
 from freamer_rl.runloop import resolve_run_dir
 
 __all__ = ["ImpalaConfig", "ImpalaTrainer", "PolicyVersion", "evaluate_impala", "impala_params", "train_impala"]
@@ -88,6 +89,13 @@ class ImpalaTrainer(ActorCriticRunLoop):
 
     def _collector_sync(self) -> bool:
         return False  # with several workers: MultiAsyncCollector, the actor-learner lag V-trace corrects
+
+    def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
+        saved = (ckpt["config"].get("impala") or {}).get("optimizer", "adam")
+        if saved != self.cfg.impala.optimizer:  # Adam's moments are no RMSprop state: refused before loading
+            raise CheckpointError(f"checkpoint {path} was trained with impala.optimizer={saved}, this config has "
+                                  f"impala.optimizer={self.cfg.impala.optimizer}; resume with the same optimizer")
+        super()._load_model_state(ckpt, path)
 
     def _after_open(self, ckpt_path: Path | None) -> None:
         self.stamp.module.version.fill_(self.batches)
