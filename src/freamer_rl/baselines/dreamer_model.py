@@ -534,13 +534,16 @@ def evaluate_checkpoint(path, *, episodes: int = 20, deterministic: bool = False
     DreamerV3's own evaluation).
     """
     from freamer_rl.baselines.dreamer import DreamerConfig
+    from freamer_rl.errors import CheckpointError
     from freamer_rl.evaluate import read_checkpoint_config, run_episodes
 
     ckpt, cfg = read_checkpoint_config(path, DreamerConfig)
     torch.set_num_threads(cfg.run.threads)
     nets = build_nets(cfg)
-    _check_architecture(ckpt, cfg, path)
-    nets.load_state_dict(ckpt["model"])
+    try:  # the config is the checkpoint's own: only a damaged or hand-edited file fails here
+        nets.load_state_dict(ckpt["model"])
+    except RuntimeError as err:
+        raise CheckpointError(f"checkpoint {path}: weights do not fit the networks of its own config") from err
     nets.eval()
     result = run_episodes(cfg, nets.policy, [nets.primer()], episodes=episodes, deterministic=deterministic,
                           num_envs=num_envs, seed=seed)  # fmt: skip
