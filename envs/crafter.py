@@ -324,18 +324,10 @@ class CrafterEnv(EnvBase):
         )
 
 
-def make_crafter_env(
-    env_id: str = DEFAULT_ENV_ID,
-    *,
-    seed: int | None = None,
-    reward_history: int = 8,
-    length: int = 10000,
-    size: int | tuple[int, int] = 64,
-    area: int | tuple[int, int] = 64,
-    view: int | tuple[int, int] = 9,
-    device: torch.device | str = "cpu",
-) -> EnvBase:
-    """Build one unbatched :class:`CrafterEnv` (the ``crafter`` entry point of the ``freamer_rl.envs`` group).
+def make_crafter_env(env_id: str = DEFAULT_ENV_ID, **options: Any) -> EnvBase:
+    """Build one unbatched :class:`CrafterEnv` (the ``crafter`` entry point of the ``freamer_rl.envs`` group);
+    ``options`` are its keyword arguments (``seed``, ``reward_history``, ``length``, ``size``, ``area``, ``view``,
+    ``device``).
 
     Picklable through ``functools.partial(make_crafter_env, env_id, ...)``, so it can feed ``SerialEnv``,
     ``ParallelEnv`` (wrap it in ``EnvCreator``) and TorchRL collectors.
@@ -344,8 +336,7 @@ def make_crafter_env(
         CrafterNotInstalledError: crafter is not installed (one line: ``pip install -e ".[crafter]"``).
         ValueError: unknown env id (with close matches) or invalid option.
     """
-    return CrafterEnv(env_id, seed=seed, reward_history=reward_history, length=length, size=size, area=area,
-                      view=view, device=device)  # fmt: skip
+    return CrafterEnv(env_id, **options)
 
 
 def _crafter_options(cfg: Any) -> dict[str, Any]:

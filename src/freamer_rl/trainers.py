@@ -12,15 +12,16 @@ parametrised registry test (``tests/test_trainers.py``) then asks for a tiny rec
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from freamer_rl.baselines.config import ImpalaConfig, PPOBaselineConfig
+from freamer_rl.baselines.dreamer import DreamerConfig, dreamer_params, evaluate_dreamer, train_dreamer
 from freamer_rl.config import ConfigError, FreamerConfig
 from freamer_rl.errors import CheckpointError, FreamerError
-from freamer_rl.baselines.dreamer import DreamerConfig, dreamer_params, evaluate_dreamer, train_dreamer
-from freamer_rl.baselines.config import ImpalaConfig, PPOBaselineConfig
 from freamer_rl.health.config import HealthConfig
 
 __all__ = ["TrainerSpec", "TRAINERS", "get_trainer", "trainer_of_checkpoint", "resolve_checkpoint"]
@@ -46,36 +47,14 @@ class TrainerSpec:
     checkpoint_format: str
 
 
-# -- MiniGrid / gym PPO (freamer_rl.train) ---------------------------------------------------------------------------
-def _minigrid_train(cfg: FreamerConfig, run_dir: str | Path | None, *, resume: bool = True) -> dict[str, Any]:
-    from freamer_rl.train import train
+def _lazy(module: str, name: str) -> Callable[..., Any]:
+    """``module.name``, imported at its first call: ``freamer-rl`` starts without loading every domain's code."""
 
-    return train(cfg, run_dir, resume=resume)
+    def call(*args: Any, **kwargs: Any) -> Any:
+        return getattr(importlib.import_module(module), name)(*args, **kwargs)
 
-
-def _minigrid_evaluate(path: Path, **options: Any) -> dict[str, Any]:
-    from freamer_rl.evaluate import evaluate
-
-    return evaluate(path, **options)
-
-
-def _minigrid_params(cfg: FreamerConfig) -> list[dict]:
-    from freamer_rl.params import offline_parameter_table
-
-    return offline_parameter_table(cfg)
-
-
-# -- health world model + imagination PPO (freamer_rl.health) -------------------------------------------------------
-def _health_train(cfg: HealthConfig, run_dir: str | Path | None, *, resume: bool = True) -> dict[str, Any]:
-    from freamer_rl.health.trainer import run_health
-
-    return run_health(cfg, run_dir, resume=resume)
-
-
-def _health_evaluate(path: Path, **options: Any) -> dict[str, Any]:
-    from freamer_rl.health.evaluation import evaluate_checkpoint
-
-    return evaluate_checkpoint(path, **options)
+    call.__name__ = call.__qualname__ = name
+    return call
 
 
 def _health_params(cfg: HealthConfig) -> list[dict]:
@@ -84,51 +63,25 @@ def _health_params(cfg: HealthConfig) -> list[dict]:
     return parameter_table(build_agent(cfg))
 
 
-# -- TorchRL baselines (freamer_rl.baselines) -----------------------------------------------------------------------
-def _ppo_baseline_train(cfg: Any, run_dir: str | Path | None, *, resume: bool = True) -> dict[str, Any]:
-    from freamer_rl.baselines.ppo import train_ppo_baseline
-
-    return train_ppo_baseline(cfg, run_dir, resume=resume)
-
-
-def _ppo_baseline_evaluate(path: Path, **options: Any) -> dict[str, Any]:
-    from freamer_rl.baselines.ppo import evaluate_ppo_baseline
-
-    return evaluate_ppo_baseline(path, **options)
-
-
-def _ppo_baseline_params(cfg: Any) -> list[dict]:
-    from freamer_rl.baselines.ppo import ppo_baseline_params
-
-    return ppo_baseline_params(cfg)
-
-
-def _impala_train(cfg: Any, run_dir: str | Path | None, *, resume: bool = True) -> dict[str, Any]:
-    from freamer_rl.baselines.impala import train_impala
-
-    return train_impala(cfg, run_dir, resume=resume)
-
-
-def _impala_evaluate(path: Path, **options: Any) -> dict[str, Any]:
-    from freamer_rl.baselines.impala import evaluate_impala
-
-    return evaluate_impala(path, **options)
-
-
-def _impala_params(cfg: Any) -> list[dict]:
-    from freamer_rl.baselines.impala import impala_params
-
-    return impala_params(cfg)
-
+_PPO, _IMPALA = "freamer_rl.baselines.ppo", "freamer_rl.baselines.impala"
 
 TRAINERS: dict[str, TrainerSpec] = {
-    "minigrid_ppo": TrainerSpec(FreamerConfig, _minigrid_train, _minigrid_evaluate, _minigrid_params, "freamer_rl/1"),
-    "health": TrainerSpec(HealthConfig, _health_train, _health_evaluate, _health_params, "freamer_rl.health/1"),
+    # MiniGrid / gym PPO (freamer_rl.train)
+    "minigrid_ppo": TrainerSpec(FreamerConfig, _lazy("freamer_rl.train", "train"),
+                                _lazy("freamer_rl.evaluate", "evaluate"),
+                                _lazy("freamer_rl.params", "offline_parameter_table"), "freamer_rl/1"),
+    # health world model + imagination PPO (freamer_rl.health)
+    "health": TrainerSpec(HealthConfig, _lazy("freamer_rl.health.trainer", "run_health"),
+                          _lazy("freamer_rl.health.evaluation", "evaluate_checkpoint"), _health_params,
+                          "freamer_rl.health/1"),
+    # TorchRL baselines (freamer_rl.baselines); they always write "trainer", the format string is shared
     "dreamer_v3": TrainerSpec(DreamerConfig, train_dreamer, evaluate_dreamer, dreamer_params, "freamer_rl/1"),
-    "ppo_baseline": TrainerSpec(PPOBaselineConfig, _ppo_baseline_train, _ppo_baseline_evaluate, _ppo_baseline_params,
+    "ppo_baseline": TrainerSpec(PPOBaselineConfig, _lazy(_PPO, "train_ppo_baseline"),
+                                _lazy(_PPO, "evaluate_ppo_baseline"), _lazy(_PPO, "ppo_baseline_params"),
                                 "freamer_rl/1"),
-    "impala": TrainerSpec(ImpalaConfig, _impala_train, _impala_evaluate, _impala_params, "freamer_rl/1"),
-}
+    "impala": TrainerSpec(ImpalaConfig, _lazy(_IMPALA, "train_impala"), _lazy(_IMPALA, "evaluate_impala"),
+                          _lazy(_IMPALA, "impala_params"), "freamer_rl/1"),
+}  # fmt: skip
 
 
 def get_trainer(name: str, source: str = "recipe") -> TrainerSpec:
