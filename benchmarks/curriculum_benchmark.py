@@ -2,7 +2,7 @@
 
     python benchmarks/curriculum_benchmark.py recipes/minigrid_multiroom_curriculum.chain.yaml --seeds 0 1 2
 
-Each seed is one ``freamer-rl chain`` run (``freamer_rl.chain.run_chain``) in its own process, two at a time, one
+Each seed is one ``freamer-rl chain`` run (``freamer_rl.experiments.chain.run_chain``) in its own process, two at a time, one
 thread each; rerunning the command resumes unfinished chains and reads finished ones back. Success rates are the
 trainer's windowed rates (last 100 episodes). Writes ``results.md``, ``results.csv`` and ``learning_curve.png`` (the
 last stage's success rate against the frames of the whole chain, mean across seeds with a min-max band) into ``--out``
@@ -28,8 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def _run_seed(job: dict) -> list[dict]:
     import torch
 
-    from freamer_rl.chain import run_chain
-    from freamer_rl.metrics import quiet_library_logs
+    from freamer_rl.experiments.chain import run_chain
+    from freamer_rl.run.metrics import quiet_library_logs
 
     torch.set_num_threads(1)
     with quiet_library_logs():
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> str:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
-    from freamer_rl.chain import load_chain
+    from freamer_rl.experiments.chain import load_chain
 
     chain = load_chain(args.chain)
     out = Path(args.out) if args.out else ROOT / "benchmarks" / "results" / chain.name

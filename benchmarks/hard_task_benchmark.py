@@ -1,5 +1,5 @@
 """A hard MiniGrid task, three methods, three seeds: FreamerV1 (curriculum chain with its machinery), TorchRL's
-PPO-MLP, and PPO-MLP with the same novelty bonus (``freamer_rl.exploration.NoveltyBonus``).
+PPO-MLP, and PPO-MLP with the same novelty bonus (``freamer_rl.machinery.exploration.NoveltyBonus``).
 
     python benchmarks/hard_task_benchmark.py --task doorkey8x8            # all methods, seeds 0 1 2
     python benchmarks/hard_task_benchmark.py --task n4s5 --methods ppo_mlp ppo_mlp_novelty
@@ -58,8 +58,8 @@ def run_freamer_chain(job: dict) -> dict:
     added, so every row counts from the start of the chain."""
     import torch
 
-    from freamer_rl.chain import run_chain
-    from freamer_rl.metrics import quiet_library_logs
+    from freamer_rl.experiments.chain import run_chain
+    from freamer_rl.run.metrics import quiet_library_logs
 
     torch.set_num_threads(1)
     stage_overrides = ["run.threads=1", "logging.progress_bar=false", *job.get("stage_overrides", [])]

@@ -1,6 +1,6 @@
 """Shared benchmark machinery: resumable jobs run two at a time, FreamerV1 runs through the library's Trainer, and
 learning curves with min-max bands across seeds (``plot_bands``, ``first_reaching`` and ``mean_std`` live in
-:mod:`freamer_rl.suite_report`, which ``freamer-rl suite`` uses too).
+:mod:`freamer_rl.experiments.report`, which ``freamer-rl suite`` uses too).
 
 A job is a dict with at least ``method``, ``seed`` and ``out``. Its result is stored as
 ``<out>/jobs/<method>_s<seed>.json`` when it finishes, and a rerun of the same benchmark command skips finished jobs
@@ -18,8 +18,8 @@ import time
 from pathlib import Path
 from typing import Callable
 
-# one copy, in the library (freamer_rl.suite_report); re-exported for the benchmark scripts
-from freamer_rl.suite_report import first_reaching, mean_std, plot_bands  # noqa: F401
+# one copy, in the library (freamer_rl.experiments.report); re-exported for the benchmark scripts
+from freamer_rl.experiments.report import first_reaching, mean_std, plot_bands  # noqa: F401
 
 ROW_KEYS = ("frames", "episodes", "success_rate", "return_mean")
 
@@ -34,8 +34,8 @@ def run_freamer(job: dict) -> dict:
 
     torch.set_num_threads(1)
     logging.basicConfig(level=logging.WARNING)
-    from freamer_rl.config import load_config
-    from freamer_rl.train import Trainer
+    from freamer_rl.trainers.registry import load_config
+    from freamer_rl.trainers.minigrid_ppo import Trainer
 
     overrides = [
         f"run.seed={job['seed']}",

@@ -61,7 +61,7 @@ def _run_job(job: dict) -> dict:
     logging.basicConfig(level=logging.WARNING)
     import shutil
 
-    from freamer_rl.config import load_config
+    from freamer_rl.trainers.registry import load_config
     from freamer_rl.health.config import HealthConfig, health_config_to_dict
     from freamer_rl.health.trainer import run_health
 

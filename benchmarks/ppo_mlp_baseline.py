@@ -32,8 +32,8 @@ from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from freamer_rl.exploration import NoveltyBonus
-from freamer_rl.reward_mixer import RewardMixer
+from freamer_rl.machinery.exploration import NoveltyBonus
+from freamer_rl.machinery.reward_mixer import RewardMixer
 
 
 def make_flat_env(env_id: str, seed: int, novelty_alpha: float | None = None):

@@ -27,7 +27,7 @@ from torchrl.modules import MLP, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from freamer_rl.config import load_config
+from freamer_rl.trainers.registry import load_config
 from freamer_rl_envs.gym import make_gym_env
 
 

@@ -80,7 +80,7 @@ def _patch_legacy_adapters(tree: Path) -> bool:
     if not (tree / "envs" / "minigrid.py").is_file():
         return False
     import envs.minigrid  # noqa: PLC0415 (from the old tree, via PYTHONPATH)
-    from freamer_rl import env_registry
+    from freamer_rl.run import env_registry
 
     env_registry.get_env_factory = lambda adapter: envs.minigrid.make_minigrid_env
     return True
@@ -91,14 +91,14 @@ def _time_freamer(spec: dict) -> dict:
 
     torch.set_num_threads(spec["threads"])
     import freamer_rl
-    from freamer_rl.config import load_config
+    from freamer_rl.trainers.registry import load_config
 
     src = Path(freamer_rl.__file__).resolve()
     tree = Path(spec["tree"]).resolve()
     if tree not in src.parents:
         raise RuntimeError(f"imported freamer_rl from {src}, expected it under {tree}")
     patched = _patch_legacy_adapters(tree) if spec.get("patch_envs") else False
-    from freamer_rl.train import Trainer
+    from freamer_rl.trainers.minigrid_ppo import Trainer
 
     k, warmup = spec["batches"], spec["warmup"]
     cfg = load_config(spec["recipe"], spec["overrides"])
@@ -236,7 +236,8 @@ def _old_recipe(recipe: Path, tree: Path) -> str:
 
 def _check_config(recipe: str, overrides: list[str]):
     """``(config, None)`` for a valid configuration, else ``(None, the ConfigError line)``."""
-    from freamer_rl.config import ConfigError, load_config
+    from freamer_rl.errors import ConfigError
+    from freamer_rl.trainers.registry import load_config
 
     try:
         return load_config(recipe, overrides), None

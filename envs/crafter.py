@@ -34,10 +34,10 @@ step counter reaches ``length`` (``truncated``; a death on that very step counts
 
 ``"achievements"`` and ``"reward_history"`` at ``("next", ...)`` already include the step that produced them, so the
 ``("next", "achievements")`` of an episode's last step lists everything that episode unlocked: this is what
-:class:`freamer_rl.crafter_score.CrafterScore` reads to compute the official Crafter score.
+:class:`freamer_rl.run.crafter_score.CrafterScore` reads to compute the official Crafter score.
 
 **Success**: none. Crafter has 22 achievements and no single goal; the trainer reports returns, and the Crafter score
-(geometric mean of per-achievement success rates, :mod:`freamer_rl.crafter_score`) is the task's metric.
+(geometric mean of per-achievement success rates, :mod:`freamer_rl.run.crafter_score`) is the task's metric.
 
 Seeding: crafter takes its seed only at construction and derives episode ``k``'s world from ``(seed, k)``. So
 ``set_seed(s)`` (or ``make_crafter_env(..., seed=s)``) builds a fresh ``crafter.Env(seed=s)`` at the next reset, and
@@ -75,7 +75,7 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from freamer_rl.env_registry import EnvAdapter
+from freamer_rl.run.env_registry import EnvAdapter
 from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
 from freamer_rl.errors import EnvSetupError
 
@@ -340,11 +340,11 @@ def make_crafter_env(env_id: str = DEFAULT_ENV_ID, **options: Any) -> EnvBase:
 
 
 def _crafter_options(cfg: Any) -> dict[str, Any]:
-    """Adapter options implied by a :class:`freamer_rl.config.FreamerConfig` (the benchmark's world otherwise)."""
+    """Adapter options implied by a trainer's config (the benchmark's world otherwise)."""
     return {"reward_history": cfg.env.reward_history}
 
 
 #: The ``crafter`` entry point of the ``freamer_rl.envs`` group. No success rule: Crafter has no single goal (see
-#: the module docstring); its metric is the Crafter score of :mod:`freamer_rl.crafter_score`.
+#: the module docstring); its metric is the Crafter score of :mod:`freamer_rl.run.crafter_score`.
 ADAPTER = EnvAdapter(make_env=make_crafter_env, options=_crafter_options, success=None,
                      achievements=CRAFTER_ACHIEVEMENTS)

@@ -22,7 +22,7 @@ from torchrl.data import Unbounded
 from torchrl.envs import Compose, DoubleToFloat, EnvBase, Transform, TransformedEnv
 from torchrl.envs.libs.gym import GymEnv
 
-from freamer_rl.env_registry import EnvAdapter
+from freamer_rl.run.env_registry import EnvAdapter
 
 __all__ = ["ADAPTER", "RewardHistory", "make_gym_env"]
 
@@ -95,7 +95,7 @@ def make_gym_env(
 
 def _gym_options(cfg: Any) -> dict[str, Any]:
     """The reward history is built only when the reward modality reads it."""
-    return {"reward_history": cfg.env.reward_history if "reward" in cfg.model.modalities else 0}
+    return {"reward_history": cfg.env.reward_history if cfg.reads_observation("reward_history") else 0}
 
 
 #: The ``gym`` entry point: no notion of success (the trainer reports returns).

@@ -1,7 +1,7 @@
 """Wearable health-management env (paper Section 5, Appendix C / J.4): a batched TorchRL :class:`EnvBase`.
 
 Each batch element follows one subject's PAMAP2 activity timeline (real ``Protocol/subjectNNN.dat`` files when
-``data_dir`` is given, else the embedded synthetic subjects of :mod:`freamer_rl.data.pamap2`) at ``rate_hz`` steps
+``data_dir`` is given, else the embedded synthetic subjects of :mod:`freamer_rl.data`) at ``rate_hz`` steps
 per second (default 1 Hz, one step = 1 s). The recorded IMU windows drive the ``"imu"`` observation; heart rate and
 fatigue come from a physiological model the agent's interventions act on.
 
@@ -11,7 +11,7 @@ Observations (``B = batch_size``)
 key                        dtype / shape          meaning
 =========================  =====================  =====================================================================
 ``"imu"``                  float32 ``[B, 36]``    hand/chest/ankle x (acc16 xyz, acc6 xyz, gyro xyz, mag xyz), scaled
-                                                  as :data:`freamer_rl.data.pamap2.IMU_FEATURE_NAMES`
+                                                  as :data:`freamer_rl.data.IMU_FEATURE_NAMES`
 ``"hr_features"``          float32 ``[B, 16]``    the loader's 16 heart-rate features (:func:`pamap2_features` table)
                                                   computed from the *model* heart rate; ``intensity`` (index 15) is
                                                   ``MET_eff / 12`` (= the loader's value at level 1 without Change),
@@ -84,7 +84,7 @@ from tensordict import TensorDict, TensorDictBase
 from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from freamer_rl.data.pamap2 import (
+from freamer_rl.data import (
     ACTIVITY_GROUP_NAMES,
     MAX_ACTIVITY_ID,
     PROTOCOL_SUBJECTS,
@@ -471,7 +471,7 @@ def make_health_env(
         env_id: optional, for the ``factory(env_id, *, seed, **options)`` adapter convention; one of
             :data:`HEALTH_ENV_IDS` or ``None``.
         data_dir: PAMAP2 root (holding ``Protocol/``) or the ``Protocol`` folder; ``None`` = synthetic subjects
-            (:func:`freamer_rl.data.pamap2.synthetic_recording`, ``synthetic_duration_s`` each, fixed by
+            (:func:`freamer_rl.data.synthetic_recording`, ``synthetic_duration_s`` each, fixed by
             ``data_seed``).
         subjects: subject numbers (101-109); ``None`` = all files found (real) or 101, 102, 103 (synthetic).
         batch_size: number of simultaneous subjects/episodes.
@@ -485,7 +485,7 @@ def make_health_env(
 
     Raises:
         ValueError: unknown ``env_id``, bad ``subjects`` / ``batch_size`` / ``episode_length`` / ``reward_weights``.
-        freamer_rl.data.pamap2.Pamap2FormatError: missing or malformed PAMAP2 files.
+        freamer_rl.data.Pamap2FormatError: missing or malformed PAMAP2 files.
     """
     if env_id is not None and env_id.lower() not in HEALTH_ENV_IDS:
         raise ValueError(f"unknown health env id {env_id!r}; valid ids: {', '.join(HEALTH_ENV_IDS)} (or None)")

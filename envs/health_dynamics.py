@@ -14,7 +14,7 @@ import math
 import numpy as np
 import torch
 
-from freamer_rl.data.pamap2 import (
+from freamer_rl.data import (
     MAX_ACTIVITY_ID,
     HRFeatureParams,
     Pamap2Features,
@@ -52,7 +52,7 @@ class HealthDynamics:
 
 
 # ----------------------------------------------------------------------------------------------------------------------
-# shared feature maths (the recursions of freamer_rl.data.pamap2.hr_feature_sequence, in torch)
+# shared feature maths (the recursions of freamer_rl.data.hr_feature_sequence, in torch)
 # ----------------------------------------------------------------------------------------------------------------------
 def exertion(hr: torch.Tensor, hr_rest: torch.Tensor, p: HRFeatureParams) -> torch.Tensor:
     """``clip((HR - HR_rest) / (HR_max - HR_rest), 0, exertion_max)``."""

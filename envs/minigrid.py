@@ -65,9 +65,9 @@ from tensordict import NonTensorData, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, NonTensor, Unbounded
 from torchrl.envs import EnvBase
 
-from freamer_rl.env_registry import EnvAdapter
+from freamer_rl.run.env_registry import EnvAdapter
 from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
-from freamer_rl.text import WordTokenizer
+from freamer_rl.data.text import WordTokenizer
 from freamer_rl_envs.minigrid_language import LanguageReward, language_reward_option
 
 logger = logging.getLogger(__name__)
@@ -425,10 +425,10 @@ def make_minigrid_env(
 
 
 def _minigrid_options(cfg) -> dict[str, Any]:
-    """Adapter options implied by a :class:`freamer_rl.config.FreamerConfig`."""
+    """Adapter options implied by a trainer's config (any schema of the trainer registry)."""
     return {
-        # rendering costs ~3x per step: only when a modality reads the pixels
-        "pixels": "vision" in cfg.model.modalities,
+        # rendering costs ~3x per step: only when the model reads the pixels
+        "pixels": cfg.reads_observation("pixels"),
         "reward_history": cfg.env.reward_history,
         "max_mission_tokens": cfg.env.max_mission_tokens,
         # the raw mission string costs ~40% of a step in TorchRL's non-tensor handling; training reads tokens

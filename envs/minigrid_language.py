@@ -1,7 +1,7 @@
 """R_lang, the language-grounded reward of MiniGrid (paper App. A.2, Eq. A10; App. G.1).
 
 ``R_lang = s_match * r_scale + b_goal + b_prox`` for one env step, from the parsed mission (Eq. A8,
-:class:`freamer_rl.mission.types.ParsedMission`) and the env's full state:
+:class:`freamer_rl.machinery.mission.types.ParsedMission`) and the env's full state:
 
 * the mission's **targets** are ``intermediate_goals + (final_goal,)`` in order; the *current* target is the first
   one not yet achieved in this episode;
@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from minigrid.core.constants import COLOR_NAMES, COLOR_TO_IDX, OBJECT_TO_IDX
 
-from freamer_rl.mission.types import MissionVocabulary, ParsedMission, Target
+from freamer_rl.machinery.mission.types import MissionVocabulary, ParsedMission, Target
 
 logger = logging.getLogger(__name__)
 
@@ -279,8 +279,8 @@ def check_language_option(option: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _make_parser(kind: str, llm_path: str | None) -> Any:
-    """The process-wide mission parser (``freamer_rl.mission.make_mission_parser``, cached there)."""
-    from freamer_rl.mission import make_mission_parser  # noqa: PLC0415 (the LLM parser pulls in transformers)
+    """The process-wide mission parser (``freamer_rl.machinery.mission.make_mission_parser``, cached there)."""
+    from freamer_rl.machinery.mission import make_mission_parser  # noqa: PLC0415 (the LLM parser pulls in transformers)
 
     return make_mission_parser(kind, MINIGRID_MISSION_VOCAB, llm_path)
 
@@ -316,9 +316,9 @@ class LanguageReward:
 
 
 def language_reward_option(cfg: Any) -> dict[str, Any] | None:
-    """``cfg.shaping.language`` of a ``FreamerConfig`` as the ``language_reward`` env option (``None`` when its
-    weight is 0: the env then computes nothing)."""
-    lang = cfg.shaping.language
-    if not lang.weight:
+    """``cfg.shaping.language`` as the ``language_reward`` env option (``None`` when its weight is 0 or the trainer's
+    schema has no ``shaping`` section: the env then computes nothing)."""
+    lang = cfg.shaping.language if hasattr(cfg, "shaping") else None
+    if lang is None or not lang.weight:
         return None
     return check_language_option({key: getattr(lang, key) for key in LANGUAGE_REWARD_DEFAULTS})

@@ -1,6 +1,6 @@
 """``freamer-rl`` command line: train, eval, params -- for every domain -- and the health anomaly report.
 
-    freamer-rl train recipes/minigrid_multiroom_n2s4.yaml ppo.lr=3e-4 run.seed=1
+    freamer-rl train recipes/minigrid_multiroom_n2s4.yaml optim.lr=3e-4 run.seed=1
     freamer-rl train recipes/health/health_foundation.yaml collect.iterations=5
     freamer-rl eval runs/<name>/checkpoints/checkpoint_000100000.pt --episodes 50
     freamer-rl eval runs/<health run>                     (any domain: the checkpoint records its trainer)
@@ -9,7 +9,7 @@
     freamer-rl suite recipes/suites/n2s4_baselines.yaml --jobs 2    (recipes x envs x seeds, resumable; see suite.py)
 
 ``train``/``params`` dispatch on the recipe's ``trainer:`` key and ``eval`` on the checkpoint's trainer through the
-registry :data:`freamer_rl.trainers.TRAINERS` (``freamer-rl health train`` is an alias of ``train``).
+registry :data:`freamer_rl.trainers.registry.TRAINERS` (``freamer-rl health train`` is an alias of ``train``).
 
 User errors (bad recipe key or type, unknown env id, a modality the env lacks, missing CLIP weights, a checkpoint
 from another config or one that is not plain tensors and data, a run directory in use by another run, ``--no-resume``
@@ -26,7 +26,14 @@ import logging
 import sys
 from pathlib import Path
 
+from freamer_rl import __version__
 from freamer_rl.errors import FreamerError
+from freamer_rl.experiments.chain import run_chain
+from freamer_rl.experiments.suite import describe, plan_suite, run_suite
+from freamer_rl.health.cli import main as health_main
+from freamer_rl.run.params import OFFLINE_NOTE, format_parameter_table
+from freamer_rl.run.rundir import Terminated
+from freamer_rl.trainers.registry import evaluate_any, get_trainer, load_recipe
 
 logger = logging.getLogger("freamer_rl")
 
@@ -35,11 +42,12 @@ def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="freamer-rl", description="FreamerV1 with TorchRL")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for user errors")
     parser.add_argument("--log-level", default="INFO", choices=["DEBUG", "INFO", "WARNING", "ERROR"])
+    parser.add_argument("--version", action="version", version=f"freamer-rl {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p_train = sub.add_parser("train", help="train from a YAML recipe")
     p_train.add_argument("recipe", help="path to a recipe YAML")
-    p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. ppo.lr=3e-4 run.seed=1")
+    p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=3e-4 run.seed=1")
     p_train.add_argument("--run-dir", default=None, help="run directory (default: run.output_dir/run.name)")
     p_train.add_argument(
         "--no-resume", action="store_true",
@@ -50,13 +58,13 @@ def _parser() -> argparse.ArgumentParser:
     p_chain = sub.add_parser(
         "chain", help="train a chain of recipes (a curriculum), each stage starting from the previous one's weights"
     )
-    p_chain.add_argument("chain", help="path to a chain YAML (freamer_rl.chain)")
+    p_chain.add_argument("chain", help="path to a chain YAML (freamer_rl.experiments.chain)")
     p_chain.add_argument("overrides", nargs="*", help="dotted overrides of the chain file, e.g. seed=1")
 
     p_suite = sub.add_parser(
         "suite", help="a benchmark suite: recipes x envs x seeds, resumable; CSV/Markdown tables and learning curves"
     )
-    p_suite.add_argument("suite", help="path to a suite YAML (freamer_rl.suite)")
+    p_suite.add_argument("suite", help="path to a suite YAML (freamer_rl.experiments.suite)")
     p_suite.add_argument("--jobs", type=int, default=1, help="runs trained at a time, one process each (default 1)")
     p_suite.add_argument("--output", default=None, help="results folder (default: the suite's output, results/<name>)")
     p_suite.add_argument("--report-only", action="store_true", help="rebuild tables and plots without training")
@@ -85,17 +93,11 @@ def _parser() -> argparse.ArgumentParser:
 
 def _run(args: argparse.Namespace) -> int:
     if args.command == "train":
-        from freamer_rl.config import load_config, recipe_trainer
-        from freamer_rl.trainers import get_trainer
-
-        name = recipe_trainer(args.recipe, args.overrides)
-        cfg = load_config(args.recipe, args.overrides)
+        name, cfg = load_recipe(args.recipe, args.overrides)  # the recipe is read once
         summary = get_trainer(name, args.recipe).train(cfg, args.run_dir, resume=not args.no_resume)
         logger.info("summary: %s", json.dumps(summary, default=str))
         return 0
     if args.command == "chain":
-        from freamer_rl.chain import run_chain
-
         rows = run_chain(args.chain, args.overrides)
         last, rate = rows[-1], rows[-1]["final_success_rate"]
         logger.info("chain finished: %d stages, %d frames, last stage success %s | %s", len(rows), last["chain_frames"],
@@ -104,8 +106,6 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "suite":
         return _suite(args)
     if args.command == "eval":
-        from freamer_rl.evaluate import evaluate_any
-
         result = evaluate_any(
             args.checkpoint, episodes=args.episodes, deterministic=args.deterministic, num_envs=args.num_envs,
             seed=args.seed,
@@ -113,16 +113,10 @@ def _run(args: argparse.Namespace) -> int:
         sys.stdout.write(json.dumps(result, indent=2, default=str) + "\n")
         return 0
     if args.command == "health":
-        from freamer_rl.health.cli import main as health_main
-
         return health_main(args.health_args, prog="freamer-rl health")
     if args.command == "params":
-        from freamer_rl.config import load_config, recipe_trainer
-        from freamer_rl.params import OFFLINE_NOTE, format_parameter_table
-        from freamer_rl.trainers import get_trainer
-
-        name = recipe_trainer(args.recipe, args.overrides)
-        table = get_trainer(name, args.recipe).params(load_config(args.recipe, args.overrides))
+        name, cfg = load_recipe(args.recipe, args.overrides)
+        table = get_trainer(name, args.recipe).params(cfg)
         sys.stdout.write(format_parameter_table(table, markdown=args.markdown) + "\n" + OFFLINE_NOTE + "\n")
         return 0
     raise AssertionError(args.command)
@@ -130,8 +124,6 @@ def _run(args: argparse.Namespace) -> int:
 
 def _suite(args: argparse.Namespace) -> int:
     """``freamer-rl suite``: the dry-run listing, or train + report; 1 when runs failed (the others still ran)."""
-    from freamer_rl.suite import describe, plan_suite, run_suite
-
     if args.dry_run:
         suite, root, runs = plan_suite(args.suite, args.output)
         lines = [f"suite {suite.name}: {len(runs)} runs -> {root}"]
@@ -156,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "health":  # its own parser takes everything after "health", options included
         args.health_args = unknown + args.health_args
     elif args.command in ("train", "params") and unknown and all("=" in a and not a.startswith("-") for a in unknown):
-        # overrides after an option (train recipe.yaml --run-dir D ppo.lr=1e-3): argparse leaves them unparsed
+        # overrides after an option (train recipe.yaml --run-dir D optim.lr=1e-3): argparse leaves them unparsed
         args.overrides = list(args.overrides) + unknown
     elif unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
@@ -169,8 +161,6 @@ def main(argv: list[str] | None = None) -> int:
         sys.stderr.write(f"error: {err}\n")
         return 2
     except KeyboardInterrupt as err:
-        from freamer_rl.rundir import Terminated
-
         if isinstance(err, Terminated):  # SIGTERM: the trainer checkpointed like on Ctrl-C; 128 + 15 as a shell would
             sys.stderr.write("terminated (SIGTERM): rerun the same command to resume from the latest checkpoint\n")
             return 143

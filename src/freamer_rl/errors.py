@@ -13,3 +13,7 @@ class EnvSetupError(FreamerError, ValueError):
 
 class CheckpointError(FreamerError, RuntimeError):
     """A checkpoint is missing, unreadable, or was saved with a different model configuration."""
+
+
+class ConfigError(FreamerError, ValueError):
+    """A recipe or override is invalid; the message names the dotted field."""

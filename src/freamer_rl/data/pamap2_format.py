@@ -1,6 +1,6 @@
 """PAMAP2 file-format constants, activity tables, the error type and the data containers.
 
-Split out of :mod:`freamer_rl.data.pamap2` (which re-exports every public name here) so that the parser, the
+Split out of :mod:`freamer_rl.data` (which re-exports every public name here) so that the parser, the
 feature code and the synthetic generator share one column layout. Paper: Section 5, Appendix C.
 
 Column layout (1-based, 54 columns): 1 timestamp (s), 2 activity id, 3 heart rate (bpm, ~9 Hz, ``NaN`` elsewhere),
@@ -16,7 +16,7 @@ import numpy as np
 
 from freamer_rl.errors import FreamerError
 
-#: every public name of the module (re-exported as a whole by :mod:`freamer_rl.data.pamap2`)
+#: every public name of the module (re-exported as a whole by :mod:`freamer_rl.data`)
 __all__ = [
     "N_COLUMNS", "SAMPLE_RATE_HZ", "PROTOCOL_SUBJECTS", "IMU_SITES", "IMU_CHANNELS", "COLUMN_NAMES", "G",
     "IMU_FEATURE_NAMES", "ACTIVITY_NAMES", "MAX_ACTIVITY_ID", "ACTIVITY_GROUP_NAMES", "ACTIVITY_GROUP_OF",

@@ -1,6 +1,6 @@
 """PAMAP2 observation features (paper Appendix C): IMU ``[N, 36]`` and heart-rate features ``[N, 16]``.
 
-Re-exported by :mod:`freamer_rl.data.pamap2`. (The module is not called ``pamap2_features`` so that it does not
+Re-exported by :mod:`freamer_rl.data`. (The module is not called ``pamap2_features`` so that it does not
 shadow the function :func:`pamap2_features` re-exported as ``freamer_rl.data.pamap2_features``.)
 """
 

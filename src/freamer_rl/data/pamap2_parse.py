@@ -1,4 +1,4 @@
-"""Streaming, bounded-memory reader of PAMAP2 ``subjectNNN.dat`` files (re-exported by :mod:`freamer_rl.data.pamap2`).
+"""Streaming, bounded-memory reader of PAMAP2 ``subjectNNN.dat`` files (re-exported by :mod:`freamer_rl.data`).
 
 The file is read in blocks of whole lines (:data:`BLOCK_BYTES` of text each); each block goes through numpy's C
 text reader (``np.loadtxt``) and vectorised value checks, and is copied into one preallocated float64 ``[T, 54]``

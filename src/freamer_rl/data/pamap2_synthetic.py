@@ -1,7 +1,7 @@
 """Format-faithful synthetic PAMAP2 subjects (the dataset cannot be downloaded here; paper Section 5).
 
 :func:`synthetic_recording` builds one 100 Hz protocol session in memory; :func:`write_synthetic_pamap2` writes
-``Protocol/subjectNNN.dat`` files in exactly the PAMAP2 text format. Re-exported by :mod:`freamer_rl.data.pamap2`.
+``Protocol/subjectNNN.dat`` files in exactly the PAMAP2 text format. Re-exported by :mod:`freamer_rl.data`.
 
 The generator is seeded: the helpers below draw from one ``numpy.random.Generator`` in a fixed order, so the
 same ``(seed, subject)`` always gives the same recording (``tests/test_pamap2_synthetic.py`` pins the values).

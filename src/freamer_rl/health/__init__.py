@@ -6,7 +6,7 @@
 * :mod:`.agent` -- env, world model, actor-value, :class:`HealthPolicy`, :class:`HealthAgent` and its checkpoint.
 * :mod:`.trainer` -- :func:`run_health` (real-env collection -> world model -> imagination PPO -> real-env
   evaluation; resumable). :mod:`.evaluation` -- the real-env evaluation protocol.
-* :mod:`.anomaly_report` -- :func:`anomaly_report` (J.5 / Fig. 4). :mod:`.pipeline` re-exports all of these.
+* :mod:`.anomaly_report` -- :func:`anomaly_report` (J.5 / Fig. 4).
 * :mod:`.reference` -- fixed and heuristic reference policies (always Continue / Rest / ..., uniform random, a heart-rate
   threshold) evaluated with the same real-env protocol: the yardstick of the imagination-trained policy.
 * :mod:`.cli` -- ``freamer-rl health {train,anomaly} ...`` (``freamer-rl train RECIPE`` trains any domain).
@@ -16,19 +16,10 @@ The real env is built through the ``freamer_rl.envs`` entry point ``health`` (th
 
 from freamer_rl.health import encoders, reference
 from freamer_rl.health.encoders import *  # noqa: F403
-from freamer_rl.health.pipeline import (
-    HealthAgent,
-    HealthConfig,
-    HealthPolicy,
-    anomaly_report,
-    build_agent,
-    health_config_from_dict,
-    health_config_to_dict,
-    imagination_horizon,
-    load_agent,
-    load_health_config,
-    run_health,
-)
+from freamer_rl.health.agent import HealthAgent, HealthPolicy, build_agent, load_agent
+from freamer_rl.health.anomaly_report import anomaly_report
+from freamer_rl.health.config import HealthConfig, health_config_from_dict, health_config_to_dict, load_health_config
+from freamer_rl.health.trainer import run_health
 from freamer_rl.health.reference import *  # noqa: F403
 
 #: submodule constants left out of ``__all__`` (``IMU_SITES`` would clash with :data:`freamer_rl.data.IMU_SITES`)
@@ -46,6 +37,5 @@ __all__ = [
     "load_agent",
     "run_health",
     "anomaly_report",
-    "imagination_horizon",
     *(name for name in reference.__all__ if name not in _NOT_REEXPORTED),
 ]

@@ -21,9 +21,9 @@ from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.transforms import TensorDictPrimer
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
-from freamer_rl import env_registry
-from freamer_rl.checkpoint import latest_checkpoint, read_checkpoint, save_checkpoint
-from freamer_rl.config import ConfigError
+from freamer_rl.run import env_registry
+from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint, save_checkpoint
+from freamer_rl.errors import ConfigError
 from freamer_rl.errors import CheckpointError
 from freamer_rl.health.config import (
     NUM_ACTIONS, OBS_KEYS, HealthConfig, HealthEncoderConfig, health_config_from_dict,
@@ -31,7 +31,7 @@ from freamer_rl.health.config import (
 )
 from freamer_rl.health.config import explore_probs as _explore_probs
 from freamer_rl.health.encoders import HealthEncoder, make_health_encoder
-from freamer_rl.tdmodule import KeyedModule
+from freamer_rl.layers.tdmodule import KeyedModule
 from freamer_rl.world_model.rssm import WorldModel, gaussian_kl
 
 __all__ = [
@@ -319,7 +319,7 @@ def logits_net(actor: ProbabilisticActor) -> nn.Module:
 
 def parameter_table(agent: HealthAgent) -> list[dict]:
     """Rows ``{"component", "trainable", "frozen"}`` (encoder, RSSM + heads + decoder, actor, value) and ``Total``,
-    the format of :func:`freamer_rl.params.format_parameter_table`."""
+    the format of :func:`freamer_rl.model.params.format_parameter_table`."""
     wm = agent.world_model
     enc_ids = {id(p) for p in wm.encoder.parameters()}
     groups = {

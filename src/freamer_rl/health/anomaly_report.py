@@ -11,7 +11,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from freamer_rl import env_registry
+from freamer_rl.run import env_registry
 from freamer_rl.health.agent import HealthAgent, env_options, load_agent, logits_net
 from freamer_rl.world_model.anomaly import DANGER_HR, DEFAULT_ACTION_NAMES, detect_anomalies, plot_anomaly_timeline
 from freamer_rl.world_model.rssm import gaussian_kl

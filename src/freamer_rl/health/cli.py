@@ -17,6 +17,10 @@ import logging
 import sys
 from pathlib import Path
 
+from freamer_rl.config.loader import load_config
+from freamer_rl.health.anomaly_report import anomaly_report
+from freamer_rl.health.config import HealthConfig
+from freamer_rl.health.trainer import run_health
 from freamer_rl.errors import FreamerError
 
 
@@ -41,11 +45,6 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None, prog: str = "freamer-rl health") -> int:
     args = build_parser(prog).parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    from freamer_rl.config import load_config
-    from freamer_rl.health.anomaly_report import anomaly_report
-    from freamer_rl.health.config import HealthConfig
-    from freamer_rl.health.trainer import run_health
-
     try:
         if args.command == "train":
             recipe, overrides = args.recipe, list(args.overrides)

@@ -1,6 +1,6 @@
 """Typed configuration of the health domain (:class:`HealthConfig`, recipes ``recipes/health/health_*.yaml``).
 
-Loaded by the one loader of :mod:`freamer_rl.config` (``load_config(path, overrides, schema=HealthConfig)``, or with no
+Loaded by the one loader of :mod:`freamer_rl.config.loader` (``load_config(path, overrides, schema=HealthConfig)``, or with no
 ``schema`` from a recipe holding ``trainer: health``); this module only declares the schema, registers its cross-field
 validator and keeps the domain's constants in one place.
 """
@@ -13,10 +13,10 @@ from pathlib import Path
 
 import torch
 
-from freamer_rl.config import VALIDATORS, ConfigError, config_from_dict, load_config
-from freamer_rl.config_checks import check_numbers
+from freamer_rl.config.checks import check_numbers, run_name_problem
+from freamer_rl.config.loader import VALIDATORS, config_from_dict, load_config
+from freamer_rl.errors import ConfigError
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
-from freamer_rl.rundir import run_name_problem
 
 __all__ = [
     "HealthEnvConfig",
@@ -183,7 +183,7 @@ def _in(lo: float, hi: float, lo_open: bool = False):
 
 
 _POS, _NONNEG = (lambda v: v > 0, "> 0"), (lambda v: v >= 0, ">= 0")
-#: Number ranges of the health schema for :func:`freamer_rl.config_checks.check_numbers` (elsewhere ints must be
+#: Number ranges of the health schema for :func:`freamer_rl.config.checks.check_numbers` (elsewhere ints must be
 #: >= 1 and floats finite).
 HEALTH_RANGES = {
     **{k: _NONNEG for k in ("env.data_seed", "eval.seed", "run.seed", "collect.iterations", "collect.prefill_frames",
@@ -202,7 +202,9 @@ HEALTH_RANGES = {
 
 
 def validate_health_config(cfg: HealthConfig) -> None:
-    """Cross-field checks (types and unknown keys are checked while building)."""
+    """Number ranges (:data:`HEALTH_RANGES`) and cross-field checks (types and unknown keys are checked while
+    building)."""
+    check_numbers(cfg)
     if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
         raise ConfigError(f"run.name: {problem}")
     if cfg.run.logger not in ("csv", "wandb", "tensorboard"):
@@ -218,7 +220,6 @@ def validate_health_config(cfg: HealthConfig) -> None:
     if len(cfg.env.reward_weights) != 3:
         raise ConfigError(f"env.reward_weights: expected 3 numbers (w_safe, w_target, w_fatigue), got "
                           f"{cfg.env.reward_weights!r}")  # fmt: skip
-    check_numbers(cfg, HEALTH_RANGES)
     if cfg.encoder.kind in ("slotattn", "foundation") and cfg.encoder.dim % cfg.encoder.heads:
         raise ConfigError(f"encoder.dim: got {cfg.encoder.dim}, must be divisible by encoder.heads "
                           f"({cfg.encoder.heads})")  # fmt: skip
@@ -261,11 +262,12 @@ def explore_probs(probs: list[float] | None, num_actions: int, name: str) -> tor
     return p / p.sum()
 
 
+HealthConfig.RANGES = HEALTH_RANGES  # the loader checks every number against the schema's table
 VALIDATORS[HealthConfig] = validate_health_config
 
 
 def health_config_from_dict(data: dict | None) -> HealthConfig:
-    """Build and validate a :class:`HealthConfig` (the shared loader, :func:`freamer_rl.config.config_from_dict`)."""
+    """Build and validate a :class:`HealthConfig` (the shared loader, :func:`freamer_rl.config.loader.config_from_dict`)."""
     return config_from_dict(data, HealthConfig)
 
 

@@ -16,7 +16,7 @@ class                           what it does                                    
 ==============================  ====================================================================  ==============
 
 Inputs: ``imu`` is the health env's 36-dim vector, ordered ``hand, chest, ankle`` x ``acc16 xyz, acc6 xyz, gyro
-xyz, mag xyz`` (:data:`freamer_rl.data.pamap2.IMU_FEATURE_NAMES`), viewed here as ``[*B, 3 sites, 12 channels]``;
+xyz, mag xyz`` (:data:`freamer_rl.data.IMU_FEATURE_NAMES`), viewed here as ``[*B, 3 sites, 12 channels]``;
 ``hr_features`` are the 16 heart-rate features (already scaled to O(1) by the loader). The IMU goes through
 :func:`~freamer_rl.world_model.rssm.symlog` (``symlog_inputs``, default True) like the world model's default
 encoder; the HR features are used as they are.
@@ -28,9 +28,9 @@ filtering a real env step by step: ``state_shapes()`` (``{name: per-element shap
 except for the foundation encoder). :class:`HealthEncoder` is that interface as a typed ``Protocol``: the pipeline
 calls it without probing what an encoder can do.
 
-The foundation encoder is the MiniGrid trunk's Layers 2-4 (:func:`freamer_rl.factory.build_filter_mix_memory`)
+The foundation encoder is the MiniGrid trunk's Layers 2-4 (:func:`freamer_rl.model.factory.build_filter_mix_memory`)
 behind a health Stage 1, as one ``TensorDictSequential`` (:attr:`FoundationHealthEncoder.trunk`); its auxiliary
-losses are :class:`~freamer_rl.losses.FreamerAuxLoss` read from the tensordict the trunk wrote. It is recurrent (the
+losses are :class:`~freamer_rl.model.losses.FreamerAuxLoss` read from the tensordict the trunk wrote. It is recurrent (the
 DNC memory) and follows TorchRL's stateful pattern: inside :meth:`WorldModel.loss` it runs under
 ``set_recurrent_mode(True)`` on a TensorDict of batch ``[*B, T+1]`` holding the observations and ``"is_init"``
 (``[*B, T+1, 1]``, True where a sequence starts), looping the DNC over time and zeroing the memory wherever
@@ -50,12 +50,12 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import set_recurrent_mode
 
-from freamer_rl.factory import build_filter_mix_memory
+from freamer_rl.model.factory import build_filter_mix_memory
 from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention
 from freamer_rl.layers.fno import FNOFuser
-from freamer_rl.losses import FreamerAuxLoss
-from freamer_rl.tdmodule import KeyedModule
+from freamer_rl.model.losses import FreamerAuxLoss
+from freamer_rl.layers.tdmodule import KeyedModule
 from freamer_rl.world_model.encoder import StatelessStepMixin, StepEncoder
 from freamer_rl.world_model.rssm import mlp, symlog
 
@@ -305,11 +305,11 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         fused, E_out = FNOFuser([ê_imu; ê_hr])                    Eq. A14-A15                    [*B, d], [*B, 2, d]
         o_embed, M_t = DNC(fused, M_{t-1})                        Appendix F.1                   [*B, E], [*B, N, W]
 
-    Stages 2-4 are the MiniGrid trunk's own layers, built by :func:`freamer_rl.factory.build_filter_mix_memory`;
+    Stages 2-4 are the MiniGrid trunk's own layers, built by :func:`freamer_rl.model.factory.build_filter_mix_memory`;
     :attr:`trunk` is ``TensorDictSequential(Stage 1, refiners, StackModalities, FNOFuser, DNCModule)`` writing
     ``("embed", m)``, ``("refined", m)`` ``[*B, d]``, ``"modal_stack"`` / ``"fused_modalities"`` ``[*B, 2, d]``,
     ``"fused"`` ``[*B, d]``, ``out_key`` ``[*B, E]`` and ``("next", *memory_key)`` ``[*B, N, W]``. The auxiliary
-    losses are :class:`~freamer_rl.losses.FreamerAuxLoss` (:meth:`make_aux_loss`) on the tensordict the trunk wrote.
+    losses are :class:`~freamer_rl.model.losses.FreamerAuxLoss` (:meth:`make_aux_loss`) on the tensordict the trunk wrote.
 
     Args:
         out_dim: ``E`` (DNC output size). dim: modality width ``d``. heads, hr_tokens, hidden: Stage 1.
@@ -497,7 +497,7 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         return self.dnc.make_tensordict_primer()
 
     def make_aux_loss(self, *, lambda_fm: float = 0.1, lambda_smooth: float = 1e-3) -> FreamerAuxLoss:
-        """The auxiliary losses (the MiniGrid trunk's :class:`~freamer_rl.losses.FreamerAuxLoss`) on a tensordict
+        """The auxiliary losses (the MiniGrid trunk's :class:`~freamer_rl.model.losses.FreamerAuxLoss`) on a tensordict
         this encoder wrote: ``loss_fm = lambda_fm * mean_m CFM_m(("embed", m))`` (Eq. A13, noise ``fm_noise_std``;
         the embeddings are detached inside, only the velocity fields learn) and ``loss_smooth = lambda_smooth *
         L_smooth("fused_modalities")`` (Eq. A16 on ``E_out [*B, 2, d]``, gradient into every stage: the literal

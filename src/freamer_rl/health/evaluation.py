@@ -18,7 +18,7 @@ import torch
 from tensordict import TensorDictBase
 from torchrl.envs import ExplorationType, set_exploration_type
 
-from freamer_rl.health.agent import HealthAgent, make_health_env
+from freamer_rl.health.agent import HealthAgent, load_agent, make_health_env
 from freamer_rl.world_model.metrics import imagination_horizon, reconstruction_mse, sample_windows
 
 __all__ = [
@@ -129,7 +129,6 @@ def evaluate_checkpoint(
 ) -> dict[str, Any]:  # fmt: skip
     """``freamer-rl eval`` of a health checkpoint: ``episodes`` real-env episodes (one per env, so ``num_envs`` is
     ``episodes``; a value given must agree) from env seed ``seed``, plus the world-model metrics on them."""
-    from freamer_rl.health.agent import load_agent
 
     if num_envs is not None and num_envs != episodes:
         raise ValueError(f"--num-envs ({num_envs}): a health evaluation runs one episode per env; give --episodes")

@@ -2,7 +2,7 @@
 
 Every reference policy is a :class:`~tensordict.nn.TensorDictModuleBase` that reads the real env's observations and
 writes ``"action"`` (int64 ``[*B]``); :func:`evaluate_reference` rolls it with exactly the protocol of
-:func:`freamer_rl.health.pipeline.evaluate_policy` (a fresh env of ``eval.num_envs`` episodes, env seed
+:func:`freamer_rl.health.evaluation.evaluate_policy` (a fresh env of ``eval.num_envs`` episodes, env seed
 ``eval.seed``, ``env.episode_length`` steps, metrics read at each env's first ``done``), so the numbers are directly
 comparable with a run's ``eval_return_mean``.
 
@@ -22,6 +22,9 @@ from typing import Any
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+
+from freamer_rl.health.agent import make_health_env
+from freamer_rl.health.evaluation import rollout_metrics
 
 logger = logging.getLogger(__name__)
 
@@ -115,9 +118,8 @@ def make_reference_policy(name: str, *, seed: int = 0, **kwargs: Any) -> TensorD
 def evaluate_reference(cfg: Any, policy: str | TensorDictModuleBase, *, num_envs: int | None = None,
                        seed: int | None = None) -> dict[str, float]:  # fmt: skip
     """Real-env metrics of a reference policy under the evaluation protocol of a
-    :class:`~freamer_rl.health.pipeline.HealthConfig` ``cfg`` (``num_envs`` default ``eval.num_envs``, env ``seed``
+    :class:`~freamer_rl.health.config.HealthConfig` ``cfg`` (``num_envs`` default ``eval.num_envs``, env ``seed``
     default ``eval.seed``): ``return_mean``, ``return_std``, ``violations_mean``, ``length_mean``, ``episodes``."""
-    from freamer_rl.health.pipeline import make_health_env, rollout_metrics
 
     module = make_reference_policy(policy) if isinstance(policy, str) else policy
     n = num_envs or cfg.eval.num_envs

@@ -47,17 +47,18 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler
 from torchrl.objectives import LossModule
 
-from freamer_rl.checkpoint import atomic_write_text, latest_checkpoint, read_checkpoint, resume_checkpoint
-from freamer_rl.checkpoint import save_checkpoint
-from freamer_rl.config import ConfigError
+from freamer_rl.run.checkpoint import atomic_write_text, latest_checkpoint, read_checkpoint, resume_checkpoint
+from freamer_rl.run.checkpoint import save_checkpoint
+from freamer_rl.errors import ConfigError
 from freamer_rl.errors import CheckpointError
 from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, save_agent
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
 from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, evaluate_agent
-from freamer_rl.optim import StepStats, optimizer_step
-from freamer_rl.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
-from freamer_rl.runfiles import make_metrics_logger, write_run_files
-from freamer_rl.rundir import run_name_problem, write_rows_csv
+from freamer_rl.run.optim import StepStats, optimizer_step
+from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
+from freamer_rl.run.files import make_metrics_logger, write_run_files
+from freamer_rl.config.checks import run_name_problem
+from freamer_rl.run.rundir import write_rows_csv
 from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv
 from freamer_rl.world_model.metrics import seed_latents
 from freamer_rl.world_model.rssm import WorldModel
@@ -78,10 +79,10 @@ def train_world_model_step(
     aux_loss: LossModule | None = None,
 ) -> dict[str, float]:  # fmt: skip
     """One gradient step of Eq. A27 on a ``[N, T]`` slice plus the encoder's auxiliary losses through
-    :func:`~freamer_rl.optim.optimizer_step`.
+    :func:`~freamer_rl.run.optim.optimizer_step`.
 
     The auxiliary loss is ``aux_loss``, else the encoder's ``make_aux_loss(lambda_fm=, lambda_smooth=)`` (foundation:
-    :class:`~freamer_rl.losses.FreamerAuxLoss`, ``loss_fm`` and ``loss_smooth`` already weighted; ``None`` for the
+    :class:`~freamer_rl.model.losses.FreamerAuxLoss`, ``loss_fm`` and ``loss_smooth`` already weighted; ``None`` for the
     others); :meth:`WorldModel.loss` runs it on the tensordict the encoder wrote for this slice. Returns float metrics
     (``total`` includes the auxiliary terms; ``grad_norm``; ``skipped`` = 1.0 for a non-finite gradient, whose update
     is skipped and counted in ``stats``)."""
@@ -227,7 +228,7 @@ class HealthTrainer:
         }
 
     def _checkpoint(self) -> Path:
-        path = save_checkpoint(self.run_dir, self._payload())  # atomic + rotated; see freamer_rl.checkpoint
+        path = save_checkpoint(self.run_dir, self._payload())  # atomic + rotated; see freamer_rl.run.checkpoint
         if self.rows:
             plot_health_curve(self.rows, self.run_dir / "learning_curve.png", title=self._title())
         return path

@@ -404,7 +404,7 @@ class DNCModule(TensorDictModuleBase):
             raise ValueError(
                 f"DNCModule in recurrent mode needs [B, T] sequences (time = last batch dim); got a tensordict with "
                 f"batch size {tuple(tensordict.batch_size)}: a 1-D batch cannot be told apart from shuffled steps. "
-                "Sample whole sequences (e.g. freamer_rl.sequences.split_sequences(data, seq_len), or a TorchRL "
+                "Sample whole sequences (e.g. freamer_rl.run.sequences.split_sequences(data, seq_len), or a TorchRL "
                 "replay buffer with a SliceSampler; README section 'Sequences for stateful layers'), or call it on "
                 "td.unsqueeze(0) for one trajectory"
             )

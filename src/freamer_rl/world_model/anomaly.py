@@ -40,7 +40,7 @@ __all__ = [
     "DANGER_HR",
 ]
 
-#: (name, low bpm, high bpm, colour) -- edges as in ``freamer_rl.data.pamap2`` (110 / 135 / 160; danger > 160).
+#: (name, low bpm, high bpm, colour) -- edges as in ``freamer_rl.data`` (110 / 135 / 160; danger > 160).
 DEFAULT_HR_ZONES: tuple[tuple[str, float, float, str], ...] = (
     ("Light", 0.0, 110.0, "#d8f0d2"),
     ("Moderate", 110.0, 135.0, "#fff2b3"),

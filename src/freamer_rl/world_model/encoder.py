@@ -55,7 +55,7 @@ class StepEncoder(Protocol):
 
     def make_aux_loss(self, *, lambda_fm: float = 0.1, lambda_smooth: float = 1e-3) -> LossModule | None:
         """The encoder's auxiliary loss as a TorchRL ``LossModule`` reading the tensordict the encoder wrote (e.g.
-        :class:`~freamer_rl.losses.FreamerAuxLoss`: weighted ``loss_fm``, ``loss_smooth``), or ``None``. Give it to
+        :class:`~freamer_rl.model.losses.FreamerAuxLoss`: weighted ``loss_fm``, ``loss_smooth``), or ``None``. Give it to
         :meth:`WorldModel.loss(batch, aux_loss=...) <freamer_rl.world_model.rssm.WorldModel.loss>`."""
         ...
 

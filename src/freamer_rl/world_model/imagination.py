@@ -28,7 +28,7 @@ from torchrl.envs.model_based import ModelBasedEnvBase
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE, TDLambdaEstimator
 
-from freamer_rl.optim import StepStats, optimizer_step
+from freamer_rl.run.optim import StepStats, optimizer_step
 from freamer_rl.world_model.rssm import WorldModel
 
 logger = logging.getLogger(__name__)
@@ -292,7 +292,7 @@ class ImaginationPPO:
 
     @property
     def skipped_updates(self) -> int:
-        """Updates skipped for a non-finite gradient (:func:`~freamer_rl.optim.optimizer_step`)."""
+        """Updates skipped for a non-finite gradient (:func:`~freamer_rl.run.optim.optimizer_step`)."""
         return self.step_stats.skipped
 
     def _step(self, loss: torch.Tensor) -> float:

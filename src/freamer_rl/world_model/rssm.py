@@ -489,7 +489,7 @@ class WorldModel(nn.Module):
         * ``total`` = rec + beta kl + reward_scale rew + continue_scale con (+ the ``loss_*`` of ``aux_loss``).
         Diagnostics (detached): ``kl`` (unclamped mean), ``mse_<key>`` (raw units).
 
-        ``aux_loss`` (e.g. the encoder's ``make_aux_loss()``, a :class:`~freamer_rl.losses.FreamerAuxLoss`) is run
+        ``aux_loss`` (e.g. the encoder's ``make_aux_loss()``, a :class:`~freamer_rl.model.losses.FreamerAuxLoss`) is run
         on the tensordict the TensorDict encoder wrote for this slice (``[*B, T+1]``, :meth:`observe`'s
         ``"encoded"``); all its entries join the returned dict and its ``loss_*`` terms are added to ``total``.
 

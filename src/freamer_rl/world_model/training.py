@@ -8,7 +8,7 @@ import logging
 import torch
 from tensordict import TensorDictBase
 
-from freamer_rl.optim import StepStats, optimizer_step
+from freamer_rl.run.optim import StepStats, optimizer_step
 from freamer_rl.world_model.rssm import WorldModel
 
 logger = logging.getLogger(__name__)
@@ -52,7 +52,7 @@ def train_world_model(
 ) -> list[dict[str, float]]:
     """``steps`` gradient steps of Eq. A27 on ``[num_slices, T]`` slices sampled from ``replay_buffer``
     (a TorchRL ``ReplayBuffer`` with a ``SliceSampler``). Gradient-norm clipping at ``grad_clip`` (1.0, Table A20); a non-finite gradient skips the step and is counted in
-    ``stats`` (:func:`~freamer_rl.optim.optimizer_step`).
+    ``stats`` (:func:`~freamer_rl.run.optim.optimizer_step`).
 
     Returns one dict of float metrics per step (keys of :meth:`WorldModel.loss` plus ``grad_norm``).
     """

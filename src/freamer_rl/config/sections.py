@@ -1,0 +1,178 @@
+"""The config sections every trainer shares, and the base schema they compose.
+
+:class:`BaseConfig` holds ``env``, ``collector``, ``logging``, ``run`` and ``optim`` (learning rate, Adam eps,
+gradient clip, schedule: the one optimiser section, read by every trainer's main optimiser). Each trainer's schema
+subclasses it and adds its own sections (BenchMARL's experiment / algorithm / model split): FreamerV1 adds ``model``,
+``ppo``, ``aux``, ``shaping``, ``success_buffer``, ``ogm``; the PPO baseline ``ppo`` and ``network``; IMPALA
+``impala`` and ``network``; DreamerV3 ``dreamer``. :class:`PPOConfig` is the algorithm section of both PPO trainers.
+
+Number ranges live beside the sections in tables (:data:`BASE_RANGES`, :data:`PPO_RANGES`) that a schema's
+``RANGES`` class attribute composes; :func:`freamer_rl.config.checks.check_numbers` applies them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+from freamer_rl.config.checks import (
+    NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range, check_collector, check_device_name, check_logging, check_numbers,
+    run_name_problem,
+)
+from freamer_rl.errors import ConfigError
+
+
+@dataclass
+class EnvConfig:
+    """Which environment to train on. ``adapter`` is an entry point of the ``freamer_rl.envs`` group."""
+
+    adapter: str = "minigrid"
+    # Modules imported before the env is built (e.g. a user's package that registers gymnasium ids); gymnasium's
+    # ``module:EnvId`` form of ``id`` imports ``module`` the same way.
+    imports: list[str] = field(default_factory=list)
+    id: str = "MiniGrid-MultiRoom-N2-S4-v0"
+    num_envs: int = 8
+    reward_history: int = 8
+    max_mission_tokens: int = 16
+
+
+@dataclass
+class CollectorConfig:
+    num_collectors: int = 1  # > 1: TorchRL multi-process synchronous collection
+    backend: str = "local"  # local: this machine's processes | ray: Ray actors (the `ray` extra), here or a cluster
+    ray_address: str | None = None  # None: start a local Ray instance; "auto" or "host:6379": join a running cluster
+    ray_num_cpus: int | None = None  # CPUs of a locally started Ray instance (None: all); only with ray_address None
+    ray_collector_cpus: float = 1.0  # CPUs Ray reserves per collector actor
+
+
+@dataclass
+class LoggingConfig:
+    backend: str = "csv"  # csv | wandb | tensorboard
+    log_every_batches: int = 1
+    checkpoint_every_frames: int = 20_000
+    success_window: int = 100
+    progress_bar: bool = True
+
+
+@dataclass
+class RunConfig:
+    seed: int = 0
+    total_frames: int = 100_000
+    output_dir: str = "runs"
+    name: str | None = None
+    threads: int = 1
+    device: str = "cpu"
+    stop_at_success: float | None = None  # stop early once the windowed success rate reaches this
+    # Transfer: start a fresh run from the model weights of another run (its directory, or a checkpoint file), e.g.
+    # a simpler env of a curriculum. Only the weights: optimiser, frames and statistics start anew. The model
+    # sections of both configs must match; a run resuming its own checkpoint ignores this.
+    init_from: str | None = None
+
+
+@dataclass
+class OptimConfig:
+    """The main optimiser of every trainer (Adam): ``optim.lr``, ``optim.eps``, ``optim.max_grad_norm``,
+    ``optim.lr_schedule``. Auxiliary optimisers (the curiosity model's) have their own settings in their section."""
+
+    lr: float = 1e-4
+    # "constant", or "linear": decays to 0 at run.total_frames (as in SB3/RL-Zoo's PPO recipes); the rate follows the
+    # frames done, so a resume continues the decay, and raising run.total_frames on resume stretches it
+    lr_schedule: str = "constant"
+    eps: float = 1e-5
+    max_grad_norm: float = 1.0
+
+
+@dataclass
+class PPOConfig:
+    """PPO's algorithm section (paper Table A20 defaults), shared by FreamerV1 and the PPO baseline."""
+
+    clip_epsilon: float = 0.2
+    epochs: int = 4
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    entropy_coeff: float = 0.01
+    critic_coeff: float = 0.5
+    normalize_advantage: bool = True
+    frames_per_batch: int = 2048
+    sequence_length: int = 16
+    minibatch_size: int = 256  # frames per minibatch (= sequences * sequence_length)
+
+
+#: Ranges of the shared sections' numbers (every other int must be >= 1 and every float finite).
+BASE_RANGES: dict[str, Range] = {
+    "env.reward_history": (NON_NEGATIVE, ">= 0 (0: no reward history)"),
+    "run.seed": (lambda v: 0 <= v < 2**32, "in [0, 2**32 - 1]"),
+    "run.stop_at_success": (UNIT_INTERVAL, "in (0, 1]"),
+    "optim.lr": (POSITIVE, "> 0"),
+    "optim.eps": (POSITIVE, "> 0"),
+    "optim.max_grad_norm": (POSITIVE, "> 0"),
+    "collector.ray_collector_cpus": (POSITIVE, "> 0"),
+}
+
+PPO_RANGES: dict[str, Range] = {
+    "ppo.clip_epsilon": (POSITIVE, "> 0"),
+    "ppo.gamma": (UNIT_INTERVAL, "in (0, 1]"),
+    "ppo.gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "ppo.entropy_coeff": (NON_NEGATIVE, ">= 0"),
+    "ppo.critic_coeff": (NON_NEGATIVE, ">= 0"),
+}
+
+#: Keys of earlier releases, refused with the key that replaced them (``freamer_rl.config.loader``).
+BASE_RENAMED: dict[str, str] = {
+    **{f"ppo.{old}": f"optim.{new}" for old, new in
+       (("lr", "lr"), ("adam_eps", "eps"), ("max_grad_norm", "max_grad_norm"), ("lr_schedule", "lr_schedule"))},
+}
+
+
+@dataclass
+class BaseConfig:
+    """``env``, ``collector``, ``logging``, ``run``, ``optim``: what the run infrastructure reads."""
+
+    env: EnvConfig = field(default_factory=EnvConfig)
+    collector: CollectorConfig = field(default_factory=CollectorConfig)
+    logging: LoggingConfig = field(default_factory=LoggingConfig)
+    run: RunConfig = field(default_factory=RunConfig)
+    optim: OptimConfig = field(default_factory=OptimConfig)
+
+    #: number ranges of this schema (a subclass composes the tables of its sections)
+    RANGES: ClassVar[dict[str, Range]] = BASE_RANGES
+    #: old dotted keys -> their replacement, refused with a message naming the new key
+    RENAMED: ClassVar[dict[str, str]] = BASE_RENAMED
+
+    def reads_observation(self, key: str) -> bool:
+        """Whether this trainer's model reads observation ``key``: env adapters skip costly observations nobody reads
+        (MiniGrid renders pixels only when asked). A schema with a model says which keys it reads."""
+        return False
+
+
+def check_base(cfg: BaseConfig) -> None:
+    """Every number against the schema's ``RANGES`` table, then names and choices of the shared sections: run name
+    and device, optim schedule, collector, logging."""
+    check_numbers(cfg)
+    # the run directory is run.output_dir/run.name: a name with separators or '..' would write elsewhere
+    if cfg.run.name and (problem := run_name_problem(cfg.run.name)):
+        raise ConfigError(f"run.name: {problem}")
+    check_device_name(cfg.run.device)
+    if cfg.optim.lr_schedule not in ("constant", "linear"):
+        raise ConfigError(f"optim.lr_schedule: expected 'constant' or 'linear', got {cfg.optim.lr_schedule!r}")
+    check_collector(cfg.collector)
+    check_logging(cfg.logging)
+
+
+def check_ppo_layout(cfg: Any) -> None:
+    """``ppo`` batch layout: frames per batch, sequences and minibatches must tile the collected ``[envs, T]``."""
+    p = cfg.ppo
+    envs_total = cfg.env.num_envs * cfg.collector.num_collectors
+    if p.frames_per_batch % envs_total:
+        raise ConfigError(f"ppo.frames_per_batch ({p.frames_per_batch}) must be divisible by env.num_envs * "
+                          f"collector.num_collectors ({envs_total})")  # fmt: skip
+    steps = p.frames_per_batch // envs_total
+    if steps % p.sequence_length:
+        raise ConfigError(f"ppo.sequence_length ({p.sequence_length}) must divide the steps per env per batch ({steps}"
+                          " = ppo.frames_per_batch / (env.num_envs * collector.num_collectors))")  # fmt: skip
+    if p.frames_per_batch % p.minibatch_size:  # else an epoch draws short minibatches and repeats sequences
+        raise ConfigError(f"ppo.minibatch_size ({p.minibatch_size}) must divide ppo.frames_per_batch "
+                          f"({p.frames_per_batch})")  # fmt: skip
+    if p.minibatch_size % p.sequence_length or p.minibatch_size > p.frames_per_batch:
+        raise ConfigError(f"ppo.minibatch_size ({p.minibatch_size}) must be a multiple of ppo.sequence_length "
+                          f"({p.sequence_length}) and at most ppo.frames_per_batch ({p.frames_per_batch})")

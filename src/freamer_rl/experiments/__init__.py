@@ -1,0 +1,1 @@
+"""Experiments above the trainers: suites (recipes x envs x seeds), their reports, curriculum chains."""

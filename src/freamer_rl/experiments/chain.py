@@ -1,0 +1,149 @@
+"""Recipe chains: a curriculum of runs, each stage starting from the previous stage's final weights.
+
+A chain file is YAML::
+
+    name: multiroom_curriculum
+    seed: 0
+    output_dir: runs
+    overrides: [run.threads=1]               # every stage
+    stages:
+      - {name: n2s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [run.stop_at_success=0.9]}
+      - {name: n3s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [env.id=MiniGrid-MultiRoom-N3-S4-v0]}
+
+Stage recipes are paths relative to the chain file's folder and must stay inside it; transfer (``run.init_from``)
+is a setting of the MiniGrid / gymnasium trainer, so chains of health recipes stop at stage 2 with one error line. Stage ``k`` trains in
+``<output_dir>/<name>-s<seed>/<stage name>`` with ``run.init_from`` set to stage ``k-1``'s run directory (transfer:
+weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its ``summary.json`` written after its
+last checkpoint) is read back, an interrupted one resumes from its checkpoint. ``chain_summary.json`` /
+``chain_summary.md`` list every stage with the frames counted across the chain (a curriculum's earlier stages count
+towards its budget).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from freamer_rl.config.checks import run_name_problem
+from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
+from freamer_rl.errors import ConfigError
+from freamer_rl.trainers.registry import get_trainer, load_recipe
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ChainConfig", "StageConfig", "load_chain", "run_chain"]
+
+
+@dataclass
+class StageConfig:
+    name: str
+    recipe: str  # relative to the chain file's folder
+    overrides: list[str] = field(default_factory=list)
+
+
+@dataclass
+class ChainConfig:
+    name: str
+    stages: list[StageConfig]
+    seed: int = 0
+    output_dir: str = "runs"
+    overrides: list[str] = field(default_factory=list)
+
+
+def _validate_chain(cfg: ChainConfig) -> None:
+    if problem := run_name_problem(cfg.name):
+        raise ConfigError(f"name: {problem}")
+    if not cfg.stages:
+        raise ConfigError("stages: a chain needs at least one stage")
+    seen: set[str] = set()
+    for i, stage in enumerate(cfg.stages):
+        if problem := run_name_problem(stage.name):
+            raise ConfigError(f"stages[{i}].name: {problem}")
+        if stage.name in seen:
+            raise ConfigError(f"stages[{i}].name: {stage.name!r} is used twice")
+        seen.add(stage.name)
+
+
+VALIDATORS[ChainConfig] = _validate_chain
+
+
+def load_chain(path: str | Path, overrides: list[str] | None = None) -> ChainConfig:
+    """Read and validate a chain file (dotted ``overrides`` apply to the chain file itself, e.g. ``seed=2``)."""
+    path = Path(path)
+    cfg = config_from_dict(read_recipe(path, overrides), ChainConfig)
+    for i, stage in enumerate(cfg.stages):
+        _stage_recipe(path, stage, i)  # every recipe exists and stays in the folder before anything trains
+    return cfg
+
+
+def _stage_recipe(chain_path: Path, stage: StageConfig, index: int) -> Path:
+    folder = chain_path.resolve().parent
+    recipe = (folder / stage.recipe).resolve()
+    if not recipe.is_relative_to(folder):
+        raise ConfigError(f"stages[{index}].recipe: {stage.recipe!r} leaves the chain file's folder {folder}")
+    if not recipe.is_file():
+        raise ConfigError(f"stages[{index}].recipe: no such recipe file: {recipe}")
+    return recipe
+
+
+def _finished(run_dir: Path) -> dict | None:
+    """The stage's summary when it finished (summary.json written after its newest checkpoint), else None."""
+    summary = run_dir / "summary.json"
+    latest = run_dir / "checkpoints" / "latest"
+    if not summary.is_file() or not latest.is_file() or summary.stat().st_mtime < latest.stat().st_mtime:
+        return None
+    return json.loads(summary.read_text())
+
+
+def run_chain(
+    path: str | Path, overrides: list[str] | None = None, *, stage_overrides: list[str] | None = None
+) -> list[dict[str, Any]]:
+    """Train every stage in order (resumable); returns one row per stage and writes the chain summary.
+
+    ``overrides`` edit the chain file (``seed=1``); ``stage_overrides`` go to every stage after its own (e.g. a
+    smoke test's sizes)."""
+    path = Path(path)
+    cfg = load_chain(path, overrides)
+    root = Path(cfg.output_dir) / f"{cfg.name}-s{cfg.seed}"
+    rows: list[dict[str, Any]] = []
+    previous: Path | None = None
+    total = 0
+    for i, stage in enumerate(cfg.stages):
+        recipe = _stage_recipe(path, stage, i)
+        run_dir = root / stage.name
+        given = [*cfg.overrides, *stage.overrides, *(stage_overrides or []), f"run.seed={cfg.seed}"]
+        if previous is not None:
+            given.append(f"run.init_from={previous}")
+        summary = _finished(run_dir)
+        if summary is None:
+            name, stage_cfg = load_recipe(recipe, given)
+            logger.info("chain %s: stage %d/%d %s (%s)", cfg.name, i + 1, len(cfg.stages), stage.name, recipe.name)
+            summary = get_trainer(name).train(stage_cfg, run_dir, resume=True)
+        else:
+            logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
+        total += int(summary["frames"])
+        rows.append({"stage": stage.name, "env": summary.get("env"), "frames": summary["frames"],
+                     "chain_frames": total, "episodes": summary.get("episodes"),
+                     "final_success_rate": summary.get("final_success_rate"),
+                     "frames_to_95": summary.get("frames_to_95"), "run_dir": str(run_dir)})  # fmt: skip
+        previous = run_dir
+    _write_summary(root, cfg, rows)
+    return rows
+
+
+def _write_summary(root: Path, cfg: ChainConfig, rows: list[dict[str, Any]]) -> None:
+    root.mkdir(parents=True, exist_ok=True)
+    payload = {"chain": cfg.name, "seed": cfg.seed, "stages": rows}
+    (root / "chain_summary.json").write_text(json.dumps(payload, indent=2))
+    lines = [f"# Chain {cfg.name} (seed {cfg.seed})", "",
+             "| stage | env | frames | frames in the chain | episodes | final success | frames to 95% |",
+             "|---|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    for r in rows:
+        success = "" if r["final_success_rate"] is None else f"{r['final_success_rate']:.3f}"
+        to95 = "" if r["frames_to_95"] is None else f"{r['frames_to_95']:,}"
+        lines.append(f"| {r['stage']} | {r['env']} | {r['frames']:,} | {r['chain_frames']:,} | {r['episodes']} | "
+                     f"{success} | {to95} |")
+    (root / "chain_summary.md").write_text("\n".join(lines) + "\n")

@@ -1,0 +1,338 @@
+"""Tables and plots of a benchmark suite (:mod:`freamer_rl.experiments.suite`), rebuilt from its run folders alone.
+
+Each run folder holds what its trainer wrote (``progress.csv``, ``summary.json``) plus the suite's markers:
+``done.json`` (written when the trainer returned; its ``total_frames`` is the budget it was trained for) and
+``failed.txt`` (the error line of the last failed attempt). :func:`write_report` turns them into ``runs.csv``,
+``summary.csv`` / ``summary.md``, ``curves.csv`` and ``curve_<env>_<metric>.png`` (mean across seeds with a min-max
+band). :func:`first_reaching`, :func:`mean_std` and :func:`plot_bands` are shared with ``benchmarks/harness.py``.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import logging
+import math
+import statistics
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from freamer_rl.run.checkpoint import atomic_write_text
+from freamer_rl.run.rundir import write_rows_csv
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "DONE_NAME", "FAILED_NAME", "PLOT_METRICS", "RunRecord", "failed_line", "first_reaching", "mean_std",
+    "plot_bands", "read_run", "run_status", "write_report",
+]
+
+DONE_NAME = "done.json"
+FAILED_NAME = "failed.txt"
+#: progress.csv columns copied into curves.csv (those a run has); the last three are plotted where present
+CURVE_KEYS = ("episodes", "success_rate", "return_mean", "crafter_score")
+PLOT_METRICS = ("success_rate", "return_mean", "crafter_score")
+#: final metrics: (runs.csv column, summary.json key, progress.csv column)
+FINAL_METRICS = (
+    ("success_rate", "final_success_rate", "success_rate"),
+    ("return_mean", "final_return_mean", "return_mean"),
+    ("crafter_score", "crafter_score", "crafter_score"),
+)
+
+
+# -- shared with benchmarks/harness.py ---------------------------------------------------------------------------------
+def _missing(v: Any) -> bool:
+    return v is None or (isinstance(v, float) and math.isnan(v))
+
+
+def first_reaching(rows: list[dict], key: str, target: float) -> tuple[int | None, int | None]:
+    """``(frames, episodes)`` of the first row whose windowed ``key`` is >= ``target``, or ``(None, None)``."""
+    for r in rows:
+        v = r.get(key)
+        if not _missing(v) and v >= target:
+            return r["frames"], r.get("episodes")
+    return None, None
+
+
+def mean_std(values: list, empty: str = "n/a") -> str:
+    """``"mean ± sample std"`` of the values that are not None/NaN (one value: itself; none: ``empty``)."""
+    vals = [v for v in values if not _missing(v)]
+    if not vals:
+        return empty
+    if len(vals) == 1:
+        return f"{vals[0]:,.2f}"
+    return f"{statistics.mean(vals):,.2f} ± {statistics.stdev(vals):,.2f}"
+
+
+def _as_float(v: Any) -> float:
+    try:
+        return float(v)
+    except (TypeError, ValueError):
+        return math.nan
+
+
+def plot_bands(results: list[dict], path: Path, y_key: str, title: str, *, x_key: str = "frames",
+               target: float | None = None, ylabel: str | None = None, colors: dict | None = None,
+               order: list[str] | None = None) -> None:
+    """Per method (``results``: dicts with ``method`` and ``rows``): the mean curve across seeds with a min-max band,
+    the seeds' curves put on a common x grid (up to the shortest run). ``order``: the methods' order (default
+    sorted); rows without ``y_key`` count as NaN."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    methods = order if order is not None else sorted({r["method"] for r in results})
+    for i, m in enumerate(methods):
+        runs = [r for r in results if r["method"] == m and r["rows"]]
+        if not runs:
+            continue
+        x_max = min(_as_float(r["rows"][-1][x_key]) for r in runs)
+        grid = np.linspace(0, x_max, 200)
+        ys = []
+        for r in runs:
+            xs = np.array([_as_float(row[x_key]) for row in r["rows"]], dtype=float)
+            vs = np.array([_as_float(row.get(y_key)) for row in r["rows"]], dtype=float)
+            ok = ~np.isnan(vs)
+            ys.append(np.interp(grid, xs[ok], vs[ok], left=np.nan) if ok.any() else np.full_like(grid, np.nan))
+        ys = np.array(ys)
+        if np.isnan(ys).all():
+            continue
+        color = (colors or {}).get(m, f"C{i}")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN grid points before a seed's first episode
+            ax.plot(grid, np.nanmean(ys, axis=0), color=color, label=f"{m} (mean of {len(runs)} seeds)")
+            ax.fill_between(grid, np.nanmin(ys, axis=0), np.nanmax(ys, axis=0), color=color, alpha=0.2, lw=0)
+    if target is not None:
+        ax.axhline(target, color="k", ls=":", lw=0.8)
+    ax.set_xlabel(x_key)
+    ax.set_ylabel(ylabel or y_key)
+    ax.set_title(title)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# -- reading run folders -----------------------------------------------------------------------------------------------
+@dataclass
+class RunRecord:
+    """What the report needs of one run: where it is and what it is (from the suite plan)."""
+
+    label: str
+    env: str
+    env_dir: str
+    seed: int
+    run_dir: Path
+    target_frames: int | None = None
+    error: str | None = None  # a problem found before the run started (its config does not load)
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def _read_progress(path: Path) -> list[dict]:
+    """progress.csv rows as floats ([] when absent); rows without a number in ``frames`` are dropped."""
+    if not path.is_file():
+        return []
+    with path.open(newline="") as f:
+        rows = [{k: _as_float(v) for k, v in r.items() if k} for r in csv.DictReader(f)]
+    return [r for r in rows if not math.isnan(r.get("frames", math.nan))]
+
+
+def run_status(run_dir: Path, target_frames: int | None) -> tuple[str, int]:
+    """``(status, frames)``: ``done`` (finished for this budget), ``failed`` (last attempt), ``partial``, ``new``."""
+    summary = _read_json(run_dir / "summary.json") or {}
+    done = _read_json(run_dir / DONE_NAME)
+    frames = int(_as_float(summary.get("frames")) if summary.get("frames") is not None else 0)
+    if done is not None:
+        budget = done.get("total_frames")
+        if target_frames is None or budget is None or budget >= target_frames:
+            return "done", int(done.get("frames") or frames)
+    if target_frames is not None and summary and frames >= target_frames:
+        return "done", frames
+    rows = _read_progress(run_dir / "progress.csv")
+    frames = int(rows[-1]["frames"]) if rows else frames
+    if (run_dir / FAILED_NAME).is_file():
+        return "failed", frames
+    return ("partial" if frames else "new"), frames
+
+
+def failed_line(run_dir: Path) -> str:
+    """The error line a failed attempt left in ``failed.txt``."""
+    try:
+        lines = (run_dir / FAILED_NAME).read_text().strip().splitlines()
+    except OSError:
+        lines = []
+    return lines[0] if lines else "failed (no error recorded)"
+
+
+def _final(summary: dict, last: dict, skey: str, pkey: str) -> float | None:
+    v = summary.get(skey)
+    if _missing(v):
+        v = last.get(pkey)
+    return None if _missing(v) else float(v)
+
+
+def read_run(rec: RunRecord) -> dict[str, Any]:
+    """One runs.csv row (plus ``rows``: its progress curve) from the run folder."""
+    status, frames = ("failed", 0) if rec.error else run_status(rec.run_dir, rec.target_frames)
+    summary = (_read_json(rec.run_dir / "summary.json") or {}) if status == "done" else {}
+    rows = _read_progress(rec.run_dir / "progress.csv")
+    last = rows[-1] if rows else {}
+    error = rec.error if rec.error or status != "failed" else failed_line(rec.run_dir)
+    out: dict[str, Any] = {"label": rec.label, "env": rec.env, "seed": rec.seed, "status": status,
+                           "frames": frames, "episodes": summary.get("episodes", last.get("episodes"))}
+    for col, skey, pkey in FINAL_METRICS:
+        out[col] = _final(summary, last, skey, pkey)
+    for key in ("frames_to_95", "episodes_to_95"):
+        out[key] = summary.get(key)
+    fps, wall = summary.get("fps"), summary.get("wall_time_s")
+    out["fps"] = None if _missing(fps) else round(float(fps), 1)
+    out["wall_time_s"] = None if _missing(wall) else round(float(wall), 1)
+    out["episodes"] = None if _missing(out["episodes"]) else int(out["episodes"])
+    out.update(error=error, run_dir=str(rec.run_dir), env_dir=rec.env_dir, rows=rows)
+    return out
+
+
+# -- tables --------------------------------------------------------------------------------------------------------
+RUN_FIELDS = ["label", "env", "seed", "status", "frames", "episodes", "success_rate", "return_mean", "frames_to_95",
+              "episodes_to_95", "crafter_score", "fps", "wall_time_s", "error", "run_dir"]
+
+
+def _spread(values: list[float]) -> tuple[float | None, float | None, float | None]:
+    vals = [v for v in values if not _missing(v)]
+    if not vals:
+        return None, None, None
+    return statistics.mean(vals), min(vals), max(vals)
+
+
+def _per_seed(runs: list[dict], key: str) -> str:
+    """``"1,234 / 2,004 / —"``: one value per done seed, ``—`` where the run never reached the target."""
+    return " / ".join("—" if r.get(key) is None else f"{int(r[key]):,}" for r in runs)
+
+
+def _group(results: list[dict]) -> dict[tuple[str, str], list[dict]]:
+    groups: dict[tuple[str, str], list[dict]] = {}
+    for r in results:
+        groups.setdefault((r["label"], r["env"]), []).append(r)
+    return groups
+
+
+def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
+    """Per label x env: the seeds done and, across them, mean / min / max of each final metric."""
+    out = []
+    for (label, env), runs in _group(results).items():
+        done = [r for r in runs if r["status"] == "done"]
+        row: dict[str, Any] = {"label": label, "env": env, "seeds_done": len(done), "seeds": len(runs),
+                               "done_seeds": " ".join(str(r["seed"]) for r in done),
+                               "failed": sum(r["status"] == "failed" for r in runs)}  # fmt: skip
+        for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps"):
+            row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
+        row["crafter_score_per_seed"] = " / ".join("—" if _missing(r.get("crafter_score")) else
+                                                   f"{r['crafter_score']:.2f}" for r in done)  # fmt: skip
+        for key in ("frames_to_95", "episodes_to_95"):
+            reached = [r[key] for r in done if r.get(key) is not None]
+            row[f"{key}_mean"] = statistics.mean(reached) if reached else None
+            row[f"{key}_reached"] = len(reached)
+            row[f"{key}_per_seed"] = _per_seed(done, key)
+        out.append(row)
+    return out
+
+
+def _cell(row: dict, key: str, digits: int) -> str:
+    mean, lo, hi = row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"]
+    if mean is None:
+        return ""
+    if lo == hi:
+        return f"{mean:,.{digits}f}"
+    return f"{mean:,.{digits}f} ({lo:,.{digits}f}–{hi:,.{digits}f})"
+
+
+def _to95(row: dict, key: str) -> str:
+    if not row["seeds_done"]:
+        return ""
+    mean = row[f"{key}_mean"]
+    head = "not reached" if mean is None else f"{mean:,.0f}"
+    return f"{head} [{row[f'{key}_per_seed']}]"
+
+
+def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
+    has_crafter = any(r["crafter_score_mean"] is not None for r in rows)
+    # envs without a notion of success (Crafter, CartPole): no success or to-95% columns
+    has_success = any(r["success_rate_mean"] is not None for r in rows)
+    head = ["label", "env", "seeds done", "frames"] + (["final success"] if has_success else []) + ["final return"]
+    head += ["Crafter score [per seed]"] if has_crafter else []
+    head += ["episodes to 95% [per seed]", "frames to 95% [per seed]"] if has_success else []
+    head += ["frames/s"]
+    note = ("Final values: mean (min–max) across the seeds done; to 95%: mean of the seeds that reached 95% success, "
+            "then each seed's value (— not reached).")
+    lines = [f"# Suite {name}", "", note, "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * (len(head) - 2)]  # fmt: skip
+    for r in rows:
+        seeds = f"{r['seeds_done']}/{r['seeds']}" + (f" ({r['done_seeds']})" if r["done_seeds"] else "")
+        cells = [r["label"], r["env"], seeds, _cell(r, "frames", 0)]
+        cells += [_cell(r, "success_rate", 3)] if has_success else []
+        cells += [_cell(r, "return_mean", 2)]
+        cells += [f"{_cell(r, 'crafter_score', 2)} [{r['crafter_score_per_seed']}]"] if has_crafter else []
+        cells += [_to95(r, "episodes_to_95"), _to95(r, "frames_to_95")] if has_success else []
+        cells += [_cell(r, "fps", 0)]
+        lines.append("| " + " | ".join(cells) + " |")
+    failed = [r for r in results if r["status"] == "failed"]
+    if failed:
+        lines += ["", "## Failed runs", ""]
+        lines += [f"- {r['label']} / {r['env']} / seed {r['seed']}: {r['error']}" for r in failed]
+    pending = [r for r in results if r["status"] in ("partial", "new")]
+    if pending:
+        items = [f"{r['label']} / {r['env']} / seed {r['seed']} ({r['status']}, {r['frames']:,} frames)" for r in pending]
+        lines += ["", f"Not finished: {'; '.join(items)}."]
+    return "\n".join(lines) + "\n"
+
+
+# -- the report ----------------------------------------------------------------------------------------------------
+def _curve_rows(results: list[dict]) -> list[dict]:
+    keys = [k for k in CURVE_KEYS if any(k in row for r in results for row in r["rows"])]
+    return [{"label": r["label"], "env": r["env"], "seed": r["seed"], "frames": int(row["frames"]),
+             **{k: row.get(k) for k in keys}} for r in results for row in r["rows"]]  # fmt: skip
+
+
+def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
+    written = []
+    for env_dir in dict.fromkeys(r["env_dir"] for r in results):
+        runs = [{"method": r["label"], "rows": r["rows"]} for r in results if r["env_dir"] == env_dir]
+        env = next(r["env"] for r in results if r["env_dir"] == env_dir)
+        for metric in PLOT_METRICS:
+            if not any(not _missing(row.get(metric)) for run in runs for row in run["rows"]):
+                continue
+            path = output / f"curve_{env_dir}_{metric}.png"
+            target = 0.95 if metric == "success_rate" else None
+            plot_bands(runs, path, metric, f"{env}: {metric} (mean, min-max across seeds)", target=target,
+                       order=[lb for lb in labels if any(run["method"] == lb for run in runs)])
+            written.append(path)
+    return written
+
+
+def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict[str, Any]]:
+    """Write runs.csv, summary.csv, summary.md, curves.csv and the curve PNGs into ``output``; returns runs.csv's
+    rows (with each run's ``rows``)."""
+    output.mkdir(parents=True, exist_ok=True)
+    results = [read_run(rec) for rec in records]
+    write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS)
+    rows = summary_rows(results)
+    write_rows_csv(output / "summary.csv", rows)
+    atomic_write_text(output / "summary.md", summary_markdown(name, rows, results))
+    curves = _curve_rows(results)
+    write_rows_csv(output / "curves.csv", curves, fields=list(curves[0]) if curves else None)
+    plots = _plots(output, results, list(dict.fromkeys(rec.label for rec in records)))
+    logger.info("suite %s: report in %s (%d runs, %d plots)", name, output, len(results), len(plots))
+    return results

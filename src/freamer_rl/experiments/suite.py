@@ -1,0 +1,308 @@
+"""Benchmark suites: one command over recipes x envs x seeds, resumable, with tables and plots in one folder.
+
+A suite file is YAML::
+
+    name: n2s4_baselines
+    output: results/n2s4_baselines        # default results/<name>, relative to the current directory
+    seeds: [0, 1, 2]
+    envs: [MiniGrid-MultiRoom-N2-S4-v0]    # optional: env.id of every entry without its own envs
+    total_frames: 80000                    # optional: run.total_frames of every run
+    overrides: [logging.checkpoint_every_frames=10000]   # every run
+    entries:
+      - {label: freamer, recipe: ../minigrid_multiroom_n2s4.yaml}
+      - {label: freamer_lr3e-4, recipe: ../minigrid_multiroom_n2s4.yaml, overrides: [optim.lr=3e-4]}
+
+Recipes are paths relative to the suite file and may name any trainer of :data:`freamer_rl.trainers.registry.TRAINERS`.
+Each run trains in ``<output>/runs/<label>/<env folder>/seed<k>`` (env ids such as ``ALE/Pong-v5`` become one folder
+name, ``ALE_Pong-v5``) with the overrides: env.id, run.total_frames, the suite's, the entry's, ``run.seed=<k>`` and
+the schema's ``progress_bar=false``. ``freamer-rl suite`` runs them ``--jobs`` at a time in spawned worker processes
+(one torch thread each). Rerunning the same command resumes: a run whose ``done.json`` covers the budget is skipped,
+an interrupted one resumes from its latest checkpoint (the trainer's own resume and run-directory lock). A failing
+run is recorded (``failed.txt``, a ``failed`` row) and the others go on. The report is
+:func:`freamer_rl.experiments.report.write_report`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import re
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from freamer_rl.config.checks import run_name_problem
+from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
+from freamer_rl.errors import ConfigError, FreamerError
+from freamer_rl.run.checkpoint import atomic_write_text
+from freamer_rl.run.rundir import Terminated, catch_sigterm, restore_sigterm
+from freamer_rl.trainers.registry import get_trainer, load_recipe
+from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, failed_line, run_status, write_report
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SuiteConfig", "SuiteEntry", "SuiteRun", "env_folder", "load_suite", "plan_suite", "run_suite"]
+
+
+@dataclass
+class SuiteEntry:
+    label: str
+    recipe: str  # relative to the suite file's folder
+    overrides: list[str] = field(default_factory=list)
+    envs: list[str] | None = None  # None: the suite's envs (or, without those, the recipe's env)
+
+
+@dataclass
+class SuiteConfig:
+    name: str
+    entries: list[SuiteEntry]
+    output: str | None = None  # default results/<name>
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])
+    envs: list[str] = field(default_factory=list)
+    overrides: list[str] = field(default_factory=list)
+    total_frames: int | None = None
+
+
+def env_folder(env_id: str) -> str:
+    """One safe folder name for an env id: every run of characters other than letters, digits, ``.``, ``_``, ``-``
+    becomes ``_`` (``ALE/Pong-v5`` -> ``ALE_Pong-v5``)."""
+    return re.sub(r"[^A-Za-z0-9._-]+", "_", env_id)
+
+
+def _check_envs(envs: list[str], where: str) -> None:
+    folders: dict[str, str] = {}
+    for i, env in enumerate(envs):
+        folder = env_folder(env)
+        if problem := run_name_problem(folder):
+            raise ConfigError(f"{where}[{i}]: env id {env!r} gives no safe folder name ({problem})")
+        if folder in folders:
+            raise ConfigError(f"{where}[{i}]: {env!r} and {folders[folder]!r} share the folder name {folder!r}")
+        folders[folder] = env
+
+
+def _validate_suite(cfg: SuiteConfig) -> None:
+    if problem := run_name_problem(cfg.name):
+        raise ConfigError(f"name: {problem}")
+    if not cfg.seeds:
+        raise ConfigError("seeds: a suite needs at least one seed")
+    for i, seed in enumerate(cfg.seeds):
+        if seed < 0 or cfg.seeds.index(seed) != i:
+            raise ConfigError(f"seeds[{i}]: expected distinct seeds >= 0, got {seed}")
+    if cfg.total_frames is not None and cfg.total_frames <= 0:
+        raise ConfigError(f"total_frames: expected a positive number of frames, got {cfg.total_frames}")
+    if cfg.output is not None and not cfg.output.strip():
+        raise ConfigError("output: expected a folder, got an empty string")
+    _check_envs(cfg.envs, "envs")
+    if not cfg.entries:
+        raise ConfigError("entries: a suite needs at least one entry")
+    seen: set[str] = set()
+    for i, entry in enumerate(cfg.entries):
+        if problem := run_name_problem(entry.label):
+            raise ConfigError(f"entries[{i}].label: {problem}")
+        if entry.label in seen:
+            raise ConfigError(f"entries[{i}].label: {entry.label!r} is used twice")
+        seen.add(entry.label)
+        if entry.envs is not None:
+            if not entry.envs:
+                raise ConfigError(f"entries[{i}].envs: an empty list (leave it out to use the suite's envs)")
+            _check_envs(entry.envs, f"entries[{i}].envs")
+
+
+VALIDATORS[SuiteConfig] = _validate_suite
+
+
+def load_suite(path: str | Path) -> SuiteConfig:
+    """Read and validate a suite file; ConfigError naming the file and the field otherwise."""
+    path = Path(path)
+    try:
+        cfg = config_from_dict(read_recipe(path), SuiteConfig)
+        for i, entry in enumerate(cfg.entries):
+            recipe = path.parent / entry.recipe
+            if not recipe.is_file():
+                raise ConfigError(f"entries[{i}].recipe: no such recipe file: {recipe}")
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}" if str(path) not in str(err) else str(err)) from None
+    return cfg
+
+
+@dataclass
+class SuiteRun(RunRecord):
+    """One run of the plan: its report identity plus what the worker trains."""
+
+    recipe: Path = Path()
+    overrides: list[str] = field(default_factory=list)
+
+
+def _quiet_override(cfg: Any) -> list[str]:
+    """``<section>.progress_bar=false`` for the schema's section that has it (logging, or run), else nothing."""
+    for section in ("logging", "run"):
+        if hasattr(getattr(cfg, section, None), "progress_bar"):
+            return [f"{section}.progress_bar=false"]
+    return []
+
+
+def _plan_run(suite: SuiteConfig, entry: SuiteEntry, recipe: Path, env: str | None, seed: int,
+              root: Path) -> SuiteRun:
+    given = [f"env.id={env}"] if env else []
+    given += [f"run.total_frames={suite.total_frames}"] if suite.total_frames else []
+    given += [*suite.overrides, *entry.overrides, f"run.seed={seed}"]
+    error, cfg = None, None
+    try:
+        _, cfg = load_recipe(recipe, given)
+    except FreamerError as err:
+        error = f"{recipe}: {err}" if str(recipe) not in str(err) else str(err)
+    if env is None:  # the recipe's own env (from the loaded config, else the raw recipe)
+        env = getattr(getattr(cfg, "env", None), "id", None)
+        if env is None:
+            try:
+                raw_env = read_recipe(recipe, given).get("env")
+            except FreamerError:
+                raw_env = None
+            env = raw_env.get("id") if isinstance(raw_env, dict) else None
+        env = env if isinstance(env, str) and not run_name_problem(env_folder(env)) else "default"
+    run_dir = root / "runs" / entry.label / env_folder(env) / f"seed{seed}"
+    target = getattr(getattr(cfg, "run", None), "total_frames", None)
+    return SuiteRun(label=entry.label, env=env, env_dir=env_folder(env), seed=seed, run_dir=run_dir,
+                    target_frames=target, error=error, recipe=recipe, overrides=given + _quiet_override(cfg))
+
+
+def plan_suite(path: str | Path, output: str | Path | None = None) -> tuple[SuiteConfig, Path, list[SuiteRun]]:
+    """The suite, its results folder and every run (entry x env x seed, in that order); a run whose config does not
+    load carries the error (it fails without training)."""
+    path = Path(path)
+    suite = load_suite(path)
+    root = Path(output if output is not None else suite.output or Path("results") / suite.name)
+    runs = []
+    for entry in suite.entries:
+        recipe = path.parent / entry.recipe
+        envs: list[str | None] = list(entry.envs if entry.envs is not None else suite.envs) or [None]
+        runs += [_plan_run(suite, entry, recipe, env, seed, root) for env in envs for seed in suite.seeds]
+    return suite, root, runs
+
+
+def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
+    """Per run: label, env, seed, status (done / partial / new / failed) and frames so far (for ``--dry-run``)."""
+    rows = []
+    for run in runs:
+        status, frames = ("failed", 0) if run.error else run_status(run.run_dir, run.target_frames)
+        error = run.error or (failed_line(run.run_dir) if status == "failed" else None)
+        rows.append({"label": run.label, "env": run.env, "seed": run.seed, "status": status, "frames": frames,
+                     "target_frames": run.target_frames, "run_dir": str(run.run_dir), "error": error})
+    return rows
+
+
+# -- workers ---------------------------------------------------------------------------------------------------------
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def _error_line(err: BaseException) -> str:
+    text = " ".join(str(err).split()) or "(no message)"
+    return text if isinstance(err, FreamerError) else f"{type(err).__name__}: {text}"
+
+
+def _train_run(job: dict[str, Any]) -> dict[str, Any]:
+    """Worker: train one run through the trainer registry (resuming), then write ``done.json`` or ``failed.txt``."""
+    logging.basicConfig(force=True, level=job["log_level"],
+                        format=f"%(asctime)s %(levelname)s [{job['tag']}] %(name)s: %(message)s")  # fmt: skip
+    run_dir = Path(job["run_dir"])
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / FAILED_NAME).unlink(missing_ok=True)
+    t0 = time.perf_counter()
+    try:
+        name, cfg = load_recipe(job["recipe"], job["overrides"])
+        summary = get_trainer(name, job["recipe"]).train(cfg, run_dir, resume=True)
+    except Exception as err:  # recorded; the suite goes on with the other runs
+        if not isinstance(err, FreamerError):
+            logger.exception("run %s failed", job["tag"])
+        error = _error_line(err)
+        atomic_write_text(run_dir / FAILED_NAME, error + "\n")
+        return {"ok": False, "error": error, "seconds": time.perf_counter() - t0}
+    done = {"total_frames": job["target_frames"], "frames": summary.get("frames"),
+            "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}  # fmt: skip
+    atomic_write_text(run_dir / DONE_NAME, json.dumps(done) + "\n")
+    return {"ok": True, "summary": json.loads(json.dumps(summary, default=str)), "seconds": time.perf_counter() - t0}
+
+
+def _tag(run: SuiteRun) -> str:
+    return f"{run.label}/{run.env}/seed{run.seed}"
+
+
+def _outcome(future: Any, run: SuiteRun) -> dict[str, Any]:
+    try:
+        return future.result()
+    except Exception as err:  # noqa: BLE001 -- BrokenProcessPool: the worker died (killed, out of memory)
+        error = _error_line(err)
+        run.run_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(run.run_dir / FAILED_NAME, error + "\n")
+        return {"ok": False, "error": error, "seconds": 0.0}
+
+
+def _log_finished(suite: str, i: int, n: int, run: SuiteRun, out: dict[str, Any]) -> None:
+    if not out["ok"]:
+        logger.warning("suite %s [%d/%d] %s FAILED: %s", suite, i, n, _tag(run), out["error"])
+        return
+    s = out["summary"]
+    success = s.get("final_success_rate")
+    logger.info("suite %s [%d/%d] %s done in %.0f s: %s frames%s", suite, i, n, _tag(run), out["seconds"],
+                f"{s.get('frames', 0):,}", "" if success is None else f", success {success:.3f}")
+
+
+def _execute(suite: str, todo: list[SuiteRun], jobs: int) -> list[SuiteRun]:
+    """Train ``todo`` ``jobs`` at a time in spawned workers; returns the runs that finished without error."""
+    level = logging.getLogger("freamer_rl").getEffectiveLevel()
+    finished: list[SuiteRun] = []
+    token = catch_sigterm()
+    pool = ProcessPoolExecutor(max_workers=max(1, min(jobs, len(todo))), mp_context=mp.get_context("spawn"),
+                               initializer=_init_worker)  # fmt: skip
+    try:
+        futures = {pool.submit(_train_run, {"recipe": str(r.recipe), "overrides": r.overrides, "tag": _tag(r),
+                                            "run_dir": str(r.run_dir), "target_frames": r.target_frames,
+                                            "log_level": level}): r for r in todo}  # fmt: skip
+        for i, future in enumerate(as_completed(futures), 1):
+            run = futures[future]
+            out = _outcome(future, run)
+            _log_finished(suite, i, len(todo), run, out)
+            if out["ok"]:
+                finished.append(run)
+    except KeyboardInterrupt as err:
+        if isinstance(err, Terminated):  # Ctrl-C reaches the workers itself; SIGTERM is passed on to them
+            for process in list(getattr(pool, "_processes", {}).values()):
+                process.terminate()
+        raise
+    finally:  # every exit, an unexpected error included, stops the workers
+        restore_sigterm(token)
+        pool.shutdown(wait=True, cancel_futures=True)
+    return finished
+
+
+def run_suite(path: str | Path, *, jobs: int = 1, output: str | Path | None = None,
+              report_only: bool = False) -> dict[str, Any]:
+    """Train every run not yet done (``report_only``: none), then write the report.
+
+    Returns ``{"output", "runs"`` (runs.csv rows), ``"trained"`` (tags of the runs trained to the end by this
+    call), ``"failed"`` (tags of failed runs)``}``."""
+    if jobs < 1:
+        raise ConfigError(f"--jobs: expected at least 1, got {jobs}")
+    suite, root, runs = plan_suite(path, output)
+    trained: list[SuiteRun] = []
+    if not report_only:
+        states = describe(runs)
+        todo = [r for r, s in zip(runs, states) if s["status"] != "done" and not r.error]
+        counts = {k: sum(s["status"] == k for s in states) for k in ("done", "partial", "new", "failed")}
+        logger.info("suite %s: %d runs (%s) -> %s; training %d, %d at a time", suite.name, len(runs),
+                    ", ".join(f"{v} {k}" for k, v in counts.items() if v), root, len(todo), jobs)  # fmt: skip
+        for run in runs:
+            if run.error:
+                logger.warning("suite %s: %s cannot start: %s", suite.name, _tag(run), run.error)
+        if todo:
+            trained = _execute(suite.name, todo, jobs)
+    results = write_report(root, suite.name, list(runs))
+    rows = [{k: v for k, v in r.items() if k != "rows"} for r in results]
+    return {"output": root, "runs": rows, "trained": [_tag(r) for r in trained],
+            "failed": [f"{r['label']}/{r['env']}/seed{r['seed']}" for r in rows if r["status"] == "failed"]}

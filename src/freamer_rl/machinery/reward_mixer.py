@@ -1,0 +1,172 @@
+"""The shaped reward PPO trains on: env reward + decayed bonus terms - time penalty (paper App. G.1, G.2, A.5).
+
+``("next", "reward")`` (the env's, on which success is judged) is never modified; :class:`RewardMixer` writes
+``("next", "shaped_reward")`` and the trainer's GAE reads it (``GAE.set_keys(reward="shaped_reward")``)::
+
+    r_shaped = r_env + decay * sum_i w_i * term_i - P                                (G.1 + G.2 + A.5)
+    decay    = max(1 - 1.25 * S, 0)   (adaptive=True, G.2)   or 1   (adaptive=False)
+    P        = time_penalty * (1 + rho / 100),  rho = 100 * S  (the success rate in percent)
+
+``P`` is the per-step penalty: A.5's ``P_time = alpha (1 + rho/100) t`` is what it adds up to after ``t`` steps
+(alpha = 0.05, rho = 29.5 %, t = 145 gives 9.39, the figure quoted in A.5; see
+:meth:`RewardMixer.accumulated_time_penalty`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torch import nn
+
+__all__ = ["RewardMixer"]
+
+#: what writes each usual bonus entry (the last element of its key), for the missing-key error
+KNOWN_WRITERS = {
+    "novelty_bonus": "the NoveltyBonus env transform (freamer_rl.machinery.exploration; append it to the env's Compose)",
+    "curiosity_reward": "CuriosityModel.intrinsic_reward on the batch (freamer_rl.machinery.exploration)",
+    "vl_reward": "vision_language_similarity on the batch's refined embeddings (freamer_rl.machinery.exploration)",
+    "lang_reward": "the env's language reward (freamer_rl_envs.minigrid_language)",
+}
+
+
+def _last(key: NestedKey) -> str:
+    return key if isinstance(key, str) else key[-1]
+
+
+class RewardMixer(nn.Module):
+    """Mixes bonus terms into ``("next", "shaped_reward")`` ``[*B, T, 1]`` (module docstring for the equation).
+
+    Follows TorchRL's loss-key pattern: the keys live in :attr:`tensor_keys` (an ``_AcceptedKeys`` dataclass) and
+    :meth:`set_keys` renames them. The mixer has no parameters and holds no tensor state.
+
+    Keys (defaults):
+        reward: ``("next", "reward")``, the env reward ``[*B, T, 1]`` (read, never written).
+        done, terminated: ``("next", "done")``, ``("next", "terminated")``; declared so the mixer's keys can be kept
+            in step with the value estimator's (:attr:`in_keys` lists them) -- the arithmetic does not read them.
+        shaped_reward: ``("next", "shaped_reward")``, the output.
+
+    Args:
+        terms: ``{name: (key, weight)}``; each ``key`` holds a ``[*B, T, 1]`` (or ``[*B, T]``) bonus, e.g.
+            ``{"novelty": (("next", "novelty_bonus"), 0.1)}``. A zero weight keeps the term in the diagnostics.
+        adaptive: G.2's decay ``max(1 - 1.25 S, 0)`` of the bonus sum; False: decay 1.
+        time_penalty: A.5's ``alpha`` (0 turns the penalty off; the paper's 0.05, or 0.02 as A.5 recommends).
+        out_key: shortcut for ``set_keys(shaped_reward=...)``.
+
+    Forward: ``mixer(td, success_rate)`` writes the output key and returns ``td``. ``success_rate`` is the recent
+    success rate ``S`` in ``[0, 1]``; NaN (no episode finished yet) counts as 0. :meth:`diagnostics` returns the
+    last call's ``bonus_<name>`` (each term's raw mean), ``shaping_decay`` and ``time_penalty`` (per step).
+
+    Raises:
+        KeyError: a term's key (or the reward) is missing, naming the key and what writes it.
+        ValueError: a non-finite weight, a negative time penalty, or a success rate outside ``[0, 1]``.
+    """
+
+    @dataclass
+    class _AcceptedKeys:
+        reward: NestedKey = ("next", "reward")
+        done: NestedKey = ("next", "done")
+        terminated: NestedKey = ("next", "terminated")
+        shaped_reward: NestedKey = ("next", "shaped_reward")
+
+    default_keys = _AcceptedKeys
+
+    def __init__(self, terms: dict[str, tuple[NestedKey, float]] | None = None, *, adaptive: bool = True,
+                 time_penalty: float = 0.0, out_key: NestedKey | None = None) -> None:  # fmt: skip
+        super().__init__()
+        self.terms: dict[str, tuple[NestedKey, float]] = {}
+        for name, (key, weight) in (terms or {}).items():
+            if not math.isfinite(weight):
+                raise ValueError(f"RewardMixer: weight of term {name!r} must be finite, got {weight!r}")
+            self.terms[name] = (key, float(weight))
+        if not (math.isfinite(time_penalty) and time_penalty >= 0):
+            raise ValueError(f"RewardMixer: time_penalty must be a finite number >= 0, got {time_penalty!r}")
+        self.adaptive = bool(adaptive)
+        self.time_penalty = float(time_penalty)
+        self.tensor_keys = self._AcceptedKeys()
+        if out_key is not None:
+            self.set_keys(shaped_reward=out_key)
+        self._diagnostics: dict[str, torch.Tensor] = {}
+
+    def set_keys(self, **kwargs: NestedKey) -> RewardMixer:
+        """Rename keys (``reward``, ``done``, ``terminated``, ``shaped_reward``), as TorchRL's losses do."""
+        allowed = {f.name for f in fields(self._AcceptedKeys)}
+        for name, key in kwargs.items():
+            if name not in allowed:
+                raise ValueError(f"RewardMixer.set_keys: {name!r} is not a key of the mixer "
+                                 f"(expected one of {sorted(allowed)})")
+            setattr(self.tensor_keys, name, key)
+        return self
+
+    @property
+    def in_keys(self) -> list[NestedKey]:
+        k = self.tensor_keys
+        return [k.reward, k.done, k.terminated, *(key for key, _ in self.terms.values())]
+
+    @property
+    def out_keys(self) -> list[NestedKey]:
+        return [self.tensor_keys.shaped_reward]
+
+    # -- the equation ---------------------------------------------------------------------------------------------
+    @staticmethod
+    def _clean_rate(success_rate: float) -> float:
+        rate = float(success_rate)
+        if math.isnan(rate):
+            return 0.0  # no episode finished yet
+        if not 0.0 <= rate <= 1.0:
+            raise ValueError(f"RewardMixer: success_rate must be in [0, 1] (or NaN), got {success_rate!r}")
+        return rate
+
+    def decay(self, success_rate: float) -> float:
+        """G.2's bonus weight ``max(1 - 1.25 S, 0)`` (1 when ``adaptive`` is False)."""
+        return max(1.0 - 1.25 * self._clean_rate(success_rate), 0.0) if self.adaptive else 1.0
+
+    def step_penalty(self, success_rate: float) -> float:
+        """A.5's per-step penalty ``alpha (1 + rho / 100)`` with ``rho = 100 S``."""
+        rho = 100.0 * self._clean_rate(success_rate)
+        return self.time_penalty * (1.0 + rho / 100.0)
+
+    @staticmethod
+    def accumulated_time_penalty(alpha: float, success_rate: float, steps: int) -> float:
+        """A.5's ``P_time = alpha (1 + rho/100) t`` after ``t = steps`` steps (0.05, 0.295, 145 -> 9.39)."""
+        return RewardMixer(time_penalty=alpha, adaptive=False).step_penalty(success_rate) * steps
+
+    def _get(self, td: TensorDictBase, name: str, key: NestedKey) -> torch.Tensor:
+        value = td.get(key, None)
+        if value is None:
+            writer = KNOWN_WRITERS.get(_last(key), "whatever produces it (an env transform, or a module run on the "
+                                                   "batch before the mixer)")  # fmt: skip
+            raise KeyError(f"RewardMixer: {name} key {key!r} is missing from the tensordict; it is written by {writer}")
+        return value
+
+    def forward(self, td: TensorDictBase, success_rate: float) -> TensorDictBase:
+        """Write ``shaped_reward`` ``[*B, T, 1]`` into ``td`` (the env reward is left as it is); returns ``td``."""
+        keys = self.tensor_keys
+        reward = self._get(td, "reward", keys.reward)
+        decay = self.decay(success_rate)
+        penalty = self.step_penalty(success_rate)
+        bonus = torch.zeros_like(reward)
+        diag: dict[str, torch.Tensor] = {}
+        for name, (key, weight) in self.terms.items():
+            term = self._get(td, f"term {name!r}", key)
+            if term.shape == reward.shape[:-1]:
+                term = term.unsqueeze(-1)
+            term = term.to(reward.dtype)
+            bonus = bonus + weight * term
+            diag[f"bonus_{name}"] = term.detach().mean()
+        td.set(keys.shaped_reward, reward + decay * bonus - penalty)
+        diag["shaping_decay"] = torch.tensor(decay)
+        diag["time_penalty"] = torch.tensor(penalty)
+        self._diagnostics = diag
+        return td
+
+    def diagnostics(self) -> dict[str, float]:
+        """The last forward's ``bonus_<name>`` (mean raw term), ``shaping_decay``, ``time_penalty`` as floats
+        (one host sync per term, here rather than in :meth:`forward`)."""
+        return {k: float(v) for k, v in self._diagnostics.items()}
+
+    def extra_repr(self) -> str:
+        return f"terms={self.terms}, adaptive={self.adaptive}, time_penalty={self.time_penalty}"

@@ -1,0 +1,71 @@
+"""Checks of FreamerV1's ``model`` section (names, choices, sizes that must fit each other); one ConfigError line
+naming the dotted field."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from freamer_rl.errors import ConfigError
+from freamer_rl.model.modalities import MODALITIES
+
+__all__ = ["check_model_names", "check_model_shapes"]
+
+#: Step counts a refiner may choose from (App. G.4 lists 1, 2, 3, 5, 7, 10).
+_MAX_ADAPTIVE_STEPS = 32
+
+#: Cells of the MiniGrid symbolic view (7 x 7) the state encoder's FNO runs along.
+_MINIGRID_VIEW_CELLS = 49
+
+
+def check_model_shapes(cfg: Any) -> None:
+    """Sizes that must fit each other: attention heads divide the embedding, Fourier modes fit the signal."""
+    m = cfg.model
+    mods, d = set(m.modalities), m.embed_dim
+    heads = [("model.language.heads", m.language.heads)] if "language" in mods else []
+    if {"vision", "language"} <= mods:  # cross-modal attention between vision and language slots
+        heads.append(("model.cross_modal_heads", m.cross_modal_heads))
+    for name, h in heads:
+        if d % h:
+            raise ConfigError(f"model.embed_dim: got {d}, must be divisible by {name} ({h})")
+    if m.fno.modes > d // 2 + 1:
+        raise ConfigError(f"model.fno.modes: got {m.fno.modes}, must be <= model.embed_dim // 2 + 1 = {d // 2 + 1} "
+                          f"(the fuser's rfft runs along the {d} embedding entries)")  # fmt: skip
+    cells = _MINIGRID_VIEW_CELLS
+    if "state" in mods and "state" not in m.observation_keys and m.state.modes > cells // 2 + 1:
+        raise ConfigError(f"model.state.modes: got {m.state.modes}, must be <= {cells // 2 + 1} (the rfft modes "
+                          f"of the {cells} cells of the 7x7 view)")  # fmt: skip
+    if "reward" in mods and "reward" not in m.observation_keys and cfg.env.reward_history == 0:
+        raise ConfigError("env.reward_history: got 0 (no reward history), but model.modalities includes reward; "
+                          "use env.reward_history >= 1")  # fmt: skip
+
+
+def check_model_names(model: Any) -> None:
+    """Names and choices of the ``model`` section: modalities and their keys, frozen encoders, backbone, gates."""
+    mods = model.modalities
+    if not mods:
+        raise ConfigError("model.modalities: at least one modality is required")
+    for m in mods:
+        if m not in MODALITIES:
+            raise ConfigError(f"model.modalities: unknown modality '{m}' (known: {', '.join(MODALITIES)})")
+    for m, keys in model.observation_keys.items():
+        if m not in mods:
+            raise ConfigError(f"model.observation_keys: '{m}' is not one of model.modalities {mods}")
+        if not keys:
+            raise ConfigError(f"model.observation_keys.{m}: give at least one observation key")
+    if len(set(mods)) != len(mods):
+        raise ConfigError(f"model.modalities: duplicates in {mods}")
+    for m in model.freeze_encoders:
+        if m not in mods:
+            raise ConfigError(f"model.freeze_encoders: '{m}' is not one of model.modalities {mods}")
+    if model.vision.backbone not in ("cnn", "clip"):
+        raise ConfigError(f"model.vision.backbone: expected 'cnn' or 'clip', got {model.vision.backbone!r}")
+    for m in model.flow.gate_init:
+        if m not in MODALITIES:
+            raise ConfigError(f"model.flow.gate_init: unknown modality '{m}'")
+    steps = model.flow.adaptive_steps
+    if any(not 1 <= s <= _MAX_ADAPTIVE_STEPS for s in steps) or len(set(steps)) != len(steps):
+        raise ConfigError(f"model.flow.adaptive_steps: got {steps}, expected distinct step counts in "
+                          f"[1, {_MAX_ADAPTIVE_STEPS}] (paper: [1, 2, 3, 5, 7, 10]; [] = fixed model.flow.steps)")
+    if len(steps) == 1:
+        raise ConfigError(f"model.flow.adaptive_steps: got {steps}: give two or more choices, or set "
+                          "model.flow.steps and leave adaptive_steps empty")  # fmt: skip

@@ -1,0 +1,132 @@
+"""FreamerV1's ``model`` section: modalities, per-modality encoders, flow refiners (Layer 2), FNO fuser, DNC."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from freamer_rl.config.checks import NON_NEGATIVE, POSITIVE, Range
+
+
+@dataclass
+class VisionConfig:
+    backbone: str = "cnn"  # "cnn" (trainable, offline) or "clip" (frozen open_clip patch tokens)
+    clip_model: str = "ViT-B-32"
+    clip_pretrained: str | None = "openai"
+    clip_checkpoint: str | None = None
+    # Random CLIP weights only on explicit request (tests, parameter counting); a warning is logged.
+    allow_random_weights: bool = False
+    num_slots: int = 8
+    slot_iters: int = 3
+
+
+@dataclass
+class LanguageConfig:
+    num_slots: int = 4
+    layers: int = 1
+    heads: int = 4
+    slot_iters: int = 3
+
+
+@dataclass
+class StateConfig:
+    channels: int = 32
+    modes: int = 12
+
+
+@dataclass
+class RewardConfig:
+    channels: int = 16
+    kernel: int = 3
+
+
+@dataclass
+class VectorConfig:
+    """Encoder of the ``vector`` modality (plain vector observations, see ``layers/vector.py``)."""
+
+    hidden: int = 128
+
+
+@dataclass
+class FlowConfig:
+    """Layer 2 per-modality flow-matching refiner (Eq. 1-3, A13)."""
+
+    hidden: int = 128
+    steps: int = 4
+    noise_std: float = 1.0
+    # initial gate logit alpha_m per modality (Eq. 3); a modality left out starts at its registry default
+    # (freamer_rl.model.modalities.MODALITIES[m].gate_init: vision -5, state / language / vector -3, reward -1)
+    gate_init: dict[str, float] = field(default_factory=dict)
+    # Score-based adaptive complexity (App. G.4): each refiner picks its Euler step count per row from these choices
+    # (paper: [1, 2, 3, 5, 7, 10]) by a straight-through Gumbel-Softmax on E_t ||v(x, t)||^2. Empty: fixed ``steps``.
+    adaptive_steps: list[int] = field(default_factory=list)
+    adaptive_tau: float = 1.0
+
+
+@dataclass
+class FNOConfig:
+    modes: int = 16
+    residual_scale: float = 0.1
+    # LayerNorm on the modality-mean (see FNOFuser): keeps the policy input's scale independent of M. Off by default:
+    # on MultiRoom-N2-S4 seeds 1 and 2 it did not learn faster (success 0.06 / 0.29 at 61k frames).
+    output_norm: bool = False
+
+
+@dataclass
+class DNCConfig:
+    enabled: bool = True
+    memory_slots: int = 32
+    memory_width: int = 64
+
+
+@dataclass
+class ModelConfig:
+    # Names from freamer_rl.model.modalities.MODALITIES, in the order they are stacked for the FNO fuser (Layer 3).
+    modalities: list[str] = field(default_factory=lambda: ["state", "language", "reward"])
+    # Env observation keys per modality when they differ from the registry's defaults, e.g. {vector: [observation]}.
+    observation_keys: dict[str, list[str]] = field(default_factory=dict)
+    # Modalities whose Layer-1 encoder is frozen (kept at its initial or loaded weights, left out of the optimiser),
+    # as the CLIP tower always is. Their refiners, the fuser and everything downstream still train.
+    freeze_encoders: list[str] = field(default_factory=list)
+    embed_dim: int = 128
+    cross_modal_heads: int = 4
+    head_hidden: int = 128
+    vision: VisionConfig = field(default_factory=VisionConfig)
+    language: LanguageConfig = field(default_factory=LanguageConfig)
+    state: StateConfig = field(default_factory=StateConfig)
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    vector: VectorConfig = field(default_factory=VectorConfig)
+    flow: FlowConfig = field(default_factory=FlowConfig)
+    fno: FNOConfig = field(default_factory=FNOConfig)
+    dnc: DNCConfig = field(default_factory=DNCConfig)
+    # torch.compile the hot spots that gain from it on CPU: the DNC step (collection, values, and the training loop
+    # over time: ~2-3x faster) and the state FNO encoder's maths (~1.4x). Same maths; value checks stay eager.
+    # Costs seconds of compiling at the first batch (see README "Speed"; torch caches the kernels on disk). A failed
+    # compilation warns once and runs eagerly (counted as compile_fallbacks in progress.csv).
+    compile: bool = False
+
+
+@dataclass
+class AuxConfig:
+    """Weights of FreamerV1's auxiliary losses (Eq. 6): flow matching, contrastive, FNO smoothness."""
+
+    lambda_fm: float = 0.1
+    lambda_cl: float = 0.1
+    lambda_smooth: float = 1e-3
+    # False: L_smooth (Eq. A16) trains only the FNO fuser (Layer 3); its gradient does not reach the encoders and
+    # refiners. True: the literal Eq. 6, which pulls every modality's embedding towards its neighbours' -- towards the
+    # constant mission and reward-history rows in MiniGrid, collapsing the state embedding (see losses.py)
+    smooth_into_encoders: bool = False
+
+
+MODEL_RANGES: dict[str, Range] = {
+    "model.flow.noise_std": (NON_NEGATIVE, ">= 0"),
+    "model.flow.adaptive_tau": (POSITIVE, "> 0"),
+    "aux.lambda_fm": (NON_NEGATIVE, ">= 0"),
+    "aux.lambda_cl": (NON_NEGATIVE, ">= 0"),
+    "aux.lambda_smooth": (NON_NEGATIVE, ">= 0"),
+}
+
+#: ``ppo.*`` keys of earlier releases that moved to ``aux``.
+AUX_RENAMED: dict[str, str] = {f"ppo.{k}": f"aux.{k}" for k in
+                               ("lambda_fm", "lambda_cl", "lambda_smooth", "smooth_into_encoders")}
+

@@ -1,0 +1,232 @@
+"""Build the FreamerV1 policy from an environment's specs and a :class:`~freamer_rl.config.loader.ModelConfig`.
+
+The result is made of plain TorchRL/tensordict parts::
+
+    trunk  = TensorDictSequential(encoders -> [cross-modal] -> pools -> FM refiners -> stack -> FNO -> DNC)
+    actor  = ProbabilisticActor(head on "hidden")                 # from the action spec (freamer_rl.model.heads)
+    critic = ValueOperator(value head on "hidden")
+    actor_value = ActorValueOperator(trunk, actor, critic)        # .get_policy_operator() / .get_value_operator()
+
+``ClipPPOLoss(actor_value.get_policy_operator(), actor_value.get_value_operator())`` works as usual. The trainer
+runs the trunk once per minibatch and gives ClipPPOLoss the two heads (TorchRL's documented shared-trunk option),
+so the auxiliary losses (Eq. 6) can read the same intermediate keys.
+
+Layers 2-4 (refiners -> stack -> FNO -> DNC) come from :func:`build_filter_mix_memory`, the one trunk builder that
+every domain uses (the health foundation encoder, :class:`~freamer_rl.health.encoders.FoundationHealthEncoder`,
+puts its own Stage 1 in front of the same layers).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import torch
+from tensordict.nn import TensorDictSequential
+from tensordict.utils import NestedKey
+from torch import nn
+from torchrl.data import Composite
+from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
+
+from freamer_rl.model.config import ModelConfig
+from freamer_rl.model.heads import action_kind, build_actor, build_critic
+from freamer_rl.layers.dnc import DNCModule
+from freamer_rl.layers.encoders import CrossModalAttention, SlotPool
+from freamer_rl.layers.flow_matching import FlowMatchingRefiner
+from freamer_rl.layers.fno import FNOFuser
+from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
+from freamer_rl.layers.tdmodule import KeyedModule
+
+logger = logging.getLogger(__name__)
+
+
+class StackModalities(nn.Module):
+    """Stack M embeddings ``[*B, d]`` into the Layer-3 input ``E`` of shape ``[*B, M, d]``."""
+
+    def forward(self, *embeddings: torch.Tensor) -> torch.Tensor:
+        return torch.stack(embeddings, dim=-2)
+
+
+@dataclass
+class FreamerModules:
+    """Everything the trainer, the evaluator and user pipelines need."""
+
+    actor_value: ActorValueOperator
+    trunk: TensorDictSequential
+    actor: ProbabilisticActor
+    critic: ValueOperator
+    refiners: nn.ModuleDict
+    fuser: FNOFuser
+    dnc: DNCModule | None
+    modalities: list[str]
+
+    @property
+    def policy(self):
+        """Trunk + policy head: the module a Collector runs."""
+        return self.actor_value.get_policy_operator()
+
+    @property
+    def value(self):
+        """Trunk + value head: the module GAE runs."""
+        return self.actor_value.get_value_operator()
+
+    def primers(self) -> list:
+        """TensorDictPrimers for the stateful parts (append them to the env with InitTracker)."""
+        return [self.dnc.make_tensordict_primer()] if self.dnc is not None else []
+
+    def gates(self) -> dict[str, float]:
+        """Per-modality residual gate sigma(alpha_m) (Eq. 3)."""
+        return {m: float(r.gate.detach()) for m, r in self.refiners.items()}
+
+
+def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, env_name: str = "the env") -> FreamerModules:
+    """Assemble the FreamerV1 TensorDictSequential from unbatched env specs and a model config.
+
+    Modalities come from :data:`freamer_rl.model.modalities.MODALITIES` (keys remapped by ``cfg.observation_keys``); the
+    heads follow the action spec (:mod:`freamer_rl.model.heads`). Bad specs raise one :class:`EnvSetupError` line.
+    """
+    modalities = list(cfg.modalities)
+    check_observation_keys(observation_spec, cfg, env_name)
+    action_kind(action_spec)  # fail on an action spec without a head before building anything
+    d = cfg.embed_dim
+    steps: list[nn.Module] = _layer1_encoders(observation_spec, cfg)
+
+    # Layers 2-4: flow-matching refiners, FNO fusion, DNC memory (the shared trunk builder).
+    layers, refiners, fuser, dnc = build_filter_mix_memory(
+        modalities, d, flow_hidden=cfg.flow.hidden, flow_steps=cfg.flow.steps,
+        flow_adaptive_steps=tuple(getattr(cfg.flow, "adaptive_steps", None) or ()) or None,
+        flow_tau=float(getattr(cfg.flow, "adaptive_tau", 1.0)),
+        gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
+        fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
+        dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
+        compile=cfg.compile,
+    )  # fmt: skip
+    steps.extend(layers)
+    trunk = TensorDictSequential(*steps)
+
+    actor = build_actor(action_spec, d, cfg.head_hidden)
+    critic = build_critic(d, cfg.head_hidden)
+    actor_value = ActorValueOperator(trunk, actor, critic)
+    return FreamerModules(
+        actor_value=actor_value,
+        trunk=trunk,
+        actor=actor,
+        critic=critic,
+        refiners=refiners,
+        fuser=fuser,
+        dnc=dnc,
+        modalities=modalities,
+    )
+
+
+def build_filter_mix_memory(
+    modalities: Sequence[str],
+    dim: int,
+    *,
+    flow_hidden: int,
+    flow_steps: int,
+    gate_init: Mapping[str, float],
+    flow_adaptive_steps: Sequence[int] | None = None,
+    flow_tau: float = 1.0,
+    fno_modes: int,
+    fno_residual_scale: float,
+    fno_output_norm: bool = False,
+    dnc: bool = True,
+    memory_slots: int = 32,
+    memory_width: int = 64,
+    compile: bool = False,
+    output_dim: int | None = None,
+    out_key: NestedKey = "hidden",
+    memory_key: NestedKey = ("dnc", "memory"),
+    is_init_key: NestedKey = "is_init",
+) -> tuple[list[nn.Module], nn.ModuleDict, FNOFuser, DNCModule | None]:
+    """Layers 2-4 of FreamerV1 as TensorDict modules: the one trunk builder of every domain.
+
+    For M = ``len(modalities)`` modalities of width ``d = dim`` the returned ``steps`` (to put in a
+    ``TensorDictSequential`` after the Layer-1 encoders that wrote ``("embed", m) [*B, d]``) are::
+
+        ("embed", m)   -> FlowMatchingRefiner_m -> ("refined", m)        [*B, d]         Eq. 1-3, one per modality
+        ("refined", *) -> StackModalities      -> "modal_stack"          [*B, M, d]
+        "modal_stack"  -> FNOFuser             -> "fused", "fused_modalities"  [*B, d], [*B, M, d]  Eq. A14-A15
+        "fused"        -> DNCModule            -> out_key [*B, D_out], ("next", *memory_key) [*B, N, W]  App. F.1
+                          (``dnc=False``: Linear(d, D_out) -> GELU, stateless)
+
+    The modules are built in that order (refiners in ``modalities`` order, then the fuser, then the DNC), so a seeded
+    model gets the same initial weights wherever it is built. ``fno_modes`` is used as given (the fuser checks it
+    against ``d``). The DNC follows TorchRL's stateful pattern: step mode by default, ``[*B, T]`` sequences under
+    ``torchrl.modules.set_recurrent_mode(True)``.
+
+    Args:
+        modalities: modality names ``m`` (keys ``("embed", m)``, ``("refined", m)``).
+        dim: embedding width ``d``. flow_hidden, flow_steps: velocity MLP width and Euler steps of each refiner.
+        flow_adaptive_steps, flow_tau: step-count choices and Gumbel-Softmax temperature of the score-based
+            adaptive complexity (Appendix G.4; ``None``/empty: off, every refiner takes ``flow_steps`` steps).
+        gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
+        fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
+        dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
+        compile: ``torch.compile`` the DNC step (with an eager fallback; :class:`~freamer_rl.layers.dnc.DNCModule`).
+        output_dim: ``D_out`` (default ``d``). out_key: where Layer 4 writes ``e_aug``.
+        memory_key, is_init_key: DNC state and episode-start keys.
+
+    Returns:
+        ``(steps, refiners, fuser, dnc)``: the TensorDict modules, ``{m: FlowMatchingRefiner}``, the fuser and the
+        :class:`~freamer_rl.layers.dnc.DNCModule` (``None`` when ``dnc=False``).
+    """
+    missing = [m for m in modalities if m not in gate_init]
+    if missing:
+        raise ValueError(f"gate_init: no initial gate for modalities {missing} (given: {sorted(gate_init)})")
+    d_out = dim if output_dim is None else output_dim
+    steps: list[nn.Module] = []
+    refiners = nn.ModuleDict()
+    for m in modalities:
+        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m],
+                                          adaptive_steps=flow_adaptive_steps, tau=flow_tau)  # fmt: skip
+        steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
+    steps.append(
+        KeyedModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
+    )
+    fuser = FNOFuser(num_modalities=len(modalities), dim=dim, modes=fno_modes, residual_scale=fno_residual_scale,
+                     output_norm=fno_output_norm)  # fmt: skip
+    steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
+    memory = None
+    if dnc:
+        memory = DNCModule(input_dim=dim, memory_slots=memory_slots, memory_width=memory_width, output_dim=d_out,
+                           in_key="fused", out_key=out_key, memory_key=memory_key, is_init_key=is_init_key,
+                           compile=compile)  # fmt: skip
+        steps.append(memory)
+    else:
+        steps.append(KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
+                                      out_keys=[out_key]))  # fmt: skip
+    return steps, refiners, fuser, memory
+
+
+def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.Module]:
+    """Layer 1: one encoder per modality (registry), cross-modal attention over the slot modalities, slot pooling."""
+    steps: list[nn.Module] = []
+    slot_mods = []
+    for m in [name for name in MODALITIES if name in cfg.modalities]:  # registry order: see MODALITIES
+        entry = MODALITIES[m]
+        keys = modality_keys(m, cfg.observation_keys)
+        ctx = EncoderContext(name=m, keys=keys, specs=tuple(observation_spec[k] for k in keys), cfg=cfg)
+        out_key = ("slots", m) if entry.kind == "slots" else ("embed", m)
+        encoder = KeyedModule(entry.build_encoder(ctx), in_keys=list(keys), out_keys=[out_key])
+        if m in cfg.freeze_encoders:
+            encoder.requires_grad_(False)  # the CLIP tower is frozen regardless
+            logger.info("model.freeze_encoders: the %s encoder is frozen (%d parameters)", m,
+                        sum(p.numel() for p in encoder.parameters()))
+        steps.append(encoder)
+        if entry.kind == "slots":
+            slot_mods.append(m)
+    if "vision" in slot_mods and "language" in slot_mods:
+        # bidirectional cross-modal attention between vision and language slots (Section 3.2)
+        steps.append(
+            KeyedModule(
+                CrossModalAttention(cfg.embed_dim, heads=cfg.cross_modal_heads),
+                in_keys=[("slots", "vision"), ("slots", "language")],
+                out_keys=[("slots", "vision"), ("slots", "language")],
+            )
+        )
+    for m in slot_mods:
+        steps.append(KeyedModule(SlotPool(), in_keys=[("slots", m)], out_keys=[("embed", m)]))
+    return steps

@@ -1,0 +1,73 @@
+"""Envs from a config's ``env`` section, through the adapter registry (:mod:`freamer_rl.run.env_registry`).
+
+One env (:func:`make_single_env`), the batched env a collector steps (:func:`make_batched_env`: ``env.num_envs``
+copies in one process plus InitTracker, StepCounter, RewardSum and the transforms a trainer hands in: its model's
+state primers, a reward-shaping transform), and the env's unbatched specs (:func:`probe_specs`) that factories build
+policies from. ``env.imports`` are imported first, so a user's own package can register its gymnasium ids.
+"""
+
+from __future__ import annotations
+
+import functools
+import importlib
+from typing import Any
+
+from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, StepCounter, TransformedEnv
+
+from freamer_rl.errors import ConfigError
+from freamer_rl.run import env_registry
+
+__all__ = ["import_env_modules", "env_options", "make_single_env", "make_batched_env", "probe_specs"]
+
+
+def import_env_modules(env: Any) -> None:
+    """Import every module of ``env.imports`` (a module that registers gymnasium ids on import); one ConfigError
+    line naming the module when it cannot be imported."""
+    for name in env.imports:
+        try:
+            importlib.import_module(name)
+        except ImportError as err:
+            raise ConfigError(f"env.imports: cannot import {name!r} ({err}); is it installed or on PYTHONPATH?") from None
+
+
+def env_options(cfg: Any) -> dict[str, Any]:
+    """Adapter keyword options implied by the config; the adapter declares them (see ``EnvAdapter.options``)."""
+    return env_registry.get_adapter(cfg.env.adapter).options(cfg)
+
+
+def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
+    import_env_modules(cfg.env)
+    return env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
+
+
+def _single_env_fn(adapter: str, env_id: str, options: dict, imports: tuple[str, ...]) -> EnvBase:
+    for name in imports:  # in a worker process the user's registering modules are not imported yet
+        importlib.import_module(name)
+    return env_registry.make_env(adapter, env_id, **options)
+
+
+def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None = None) -> EnvBase:
+    """``num_envs`` (default ``env.num_envs``) copies in one process (2 cores do not profit from ParallelEnv): the
+    adapter's own batched env when it has one (``EnvAdapter.make_batched_env``), else a SerialEnv of single envs;
+    then InitTracker, StepCounter, RewardSum and copies of ``transforms`` (after RewardSum, so episode returns stay
+    the env's own)."""
+    import_env_modules(cfg.env)
+    n = num_envs or cfg.env.num_envs
+    adapter = env_registry.get_adapter(cfg.env.adapter)
+    if adapter.make_batched_env is not None:
+        base = adapter.make_batched_env(cfg.env.id, n, **env_options(cfg))
+    else:
+        make = functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg), tuple(cfg.env.imports))
+        base = SerialEnv(n, make)
+    env = TransformedEnv(base, Compose(InitTracker(), StepCounter(), RewardSum(), *[t.clone() for t in transforms]))
+    env.set_seed(seed)
+    return env
+
+
+def probe_specs(cfg: Any):
+    """Unbatched observation and action specs of the configured env (also validates the env id)."""
+    env = make_single_env(cfg)
+    try:
+        return env.observation_spec.clone(), env.action_spec.clone()
+    finally:
+        env.close()

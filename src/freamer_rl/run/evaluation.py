@@ -1,0 +1,85 @@
+"""Evaluation every collector-based trainer's evaluator shares: a checkpoint and its config
+(:func:`read_checkpoint_config`), then N complete episodes of a policy in the config's env (:func:`run_episodes`)
+reported as success rate, return and length. ``freamer-rl eval`` dispatches to a trainer's evaluator through the
+registry (:func:`freamer_rl.trainers.registry.evaluate_any`)."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import torch
+from torchrl.envs.utils import ExplorationType, set_exploration_type
+
+from freamer_rl.config.loader import config_from_dict
+from freamer_rl.errors import CheckpointError, ConfigError
+from freamer_rl.run import env_registry
+from freamer_rl.run.checkpoint import load_checkpoint
+from freamer_rl.run.envs import make_batched_env
+
+__all__ = ["read_checkpoint_config", "run_episodes"]
+
+logger = logging.getLogger(__name__)
+
+
+def read_checkpoint_config(path: Path, schema: type) -> tuple[dict[str, Any], Any]:
+    """A checkpoint (read with ``weights_only``) and its config built with ``schema``."""
+    ckpt = load_checkpoint(path)
+    try:
+        cfg = config_from_dict(ckpt["config"], schema)
+    except ConfigError as err:
+        raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {err}") from err
+    return ckpt, cfg
+
+
+@torch.no_grad()
+def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, deterministic: bool = False,
+                 num_envs: int | None = None, seed: int = 12345, max_steps: int = 100_000) -> dict[str, Any]:
+    """``episodes`` complete episodes of ``policy`` in the config's env (every trainer's evaluator uses this)."""
+    n_envs = min(num_envs or cfg.env.num_envs, episodes)
+    env = make_batched_env(cfg, primers, seed, num_envs=n_envs)
+    success_fn = env_registry.get_adapter(cfg.env.adapter).success
+    mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
+    try:
+        with set_exploration_type(mode):
+            per_env = _episodes_per_env(env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps)
+    finally:
+        env.close()
+    # episode k of every env before episode k + 1 of any: choosing by finishing order would favour short episodes
+    chosen = [eps[k] for k in range(max(map(len, per_env))) for eps in per_env if k < len(eps)][:episodes]
+    if not chosen:
+        raise CheckpointError(f"no episode finished within {max_steps} steps")
+    succ = [e["success"] for e in chosen if e["success"] is not None]
+    return {
+        "env": cfg.env.id,
+        "episodes": len(chosen),
+        # NaN when the env has no notion of success (e.g. CartPole): see EnvAdapter.success
+        "success_rate": sum(succ) / len(succ) if succ else float("nan"),
+        "return_mean": sum(e["return"] for e in chosen) / len(chosen),
+        "length_mean": sum(e["length"] for e in chosen) / len(chosen),
+        "deterministic": deterministic,
+    }
+
+
+def _episodes_per_env(env, policy, n_envs: int, quota: int, success_fn, max_steps: int) -> list[list[dict]]:
+    """The first ``quota`` episodes of each of the ``n_envs`` envs: ``{"return", "length", "success"}`` each
+    (``success`` None without a success rule)."""
+    per_env: list[list[dict]] = [[] for _ in range(n_envs)]
+    td = env.reset()
+    for _ in range(max_steps):
+        td = policy(td)
+        td, td_next = env.step_and_maybe_reset(td)
+        nxt = td["next"].reshape(n_envs)
+        done = nxt["done"].reshape(n_envs)
+        if done.any():
+            ended = done.nonzero().flatten().tolist()
+            succ = success_fn(nxt[done]).reshape(-1).tolist() if success_fn is not None else [None] * len(ended)
+            for j, i in enumerate(ended):
+                if len(per_env[i]) < quota:
+                    per_env[i].append({"return": float(nxt["episode_reward"][i].reshape(-1)[0]),
+                                       "length": int(nxt["step_count"][i].reshape(-1)[0]), "success": succ[j]})
+        td = td_next
+        if all(len(e) >= quota for e in per_env):
+            break
+    return per_env

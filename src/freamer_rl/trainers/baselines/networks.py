@@ -1,0 +1,98 @@
+"""Actor-critic networks of the TorchRL baselines, built from the env's specs and the recipe's ``network`` section.
+
+``kind: mlp`` -- every observation key cast to float, flattened and concatenated (MiniGrid's ``grid`` + ``direction``
+is FlatObsWrapper's observation without the mission characters, which are constant in MultiRoom); ``kind: cnn`` --
+the one image key (uint8 ``[H, W, C]``, scaled to [0, 1]) through the Nature-DQN conv stack, the other keys flattened
+beside its features. ``shared: false`` gives the actor and the critic their own encoder (TorchRL's PPO-MLP);
+``shared: true`` one trunk for both (the usual PPO-CNN). Either way the pieces are an ``ActorValueOperator``:
+``common`` writes ``hidden_pi`` / ``hidden_v``, the heads of :mod:`freamer_rl.model.heads` read them.
+"""
+
+from __future__ import annotations
+
+import torch
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.modules import ActorValueOperator
+
+from freamer_rl.trainers.baselines.config import NetworkConfig
+from freamer_rl.errors import EnvSetupError
+from freamer_rl.model.heads import build_actor, build_critic
+
+__all__ = ["ObservationEncoder", "ActorCriticTrunk", "build_actor_critic"]
+
+PI, V = "hidden_pi", "hidden_v"
+
+
+class ObservationEncoder(nn.Module):
+    """``(*obs [*B, *shape_i]) -> [*B, hidden]``: a conv stack on the image (``image_index``) and/or an MLP on the
+    flattened rest; ReLU after the convs, tanh (mlp) or ReLU (cnn) after the last linear layer."""
+
+    def __init__(self, shapes: list[tuple[int, ...]], hidden: int, image_index: int | None = None,
+                 channels: tuple[int, ...] = (32, 64, 64)) -> None:  # fmt: skip
+        super().__init__()
+        self.shapes = [tuple(s) for s in shapes]
+        self.image_index = image_index
+        flat = sum(int(torch.Size(s).numel()) for i, s in enumerate(self.shapes) if i != image_index)
+        self.conv = None
+        if image_index is not None:
+            h, w, c = self.shapes[image_index]
+            if min(h, w) < 36:  # 8x8 stride 4, 4x4 stride 2, 3x3: the smallest frame that leaves one cell
+                raise EnvSetupError(f"network.kind=cnn: the image is {h}x{w}; the Nature-DQN conv stack needs at "
+                                    "least 36x36")  # fmt: skip
+            c1, c2, c3 = channels
+            self.conv = nn.Sequential(nn.Conv2d(c, c1, 8, stride=4), nn.ReLU(), nn.Conv2d(c1, c2, 4, stride=2),
+                                      nn.ReLU(), nn.Conv2d(c2, c3, 3, stride=1), nn.ReLU(), nn.Flatten())  # fmt: skip
+            with torch.no_grad():
+                flat += self.conv(torch.zeros(1, c, h, w)).shape[-1]
+        act = nn.ReLU() if self.conv is not None else nn.Tanh()
+        self.fc = nn.Sequential(nn.Linear(flat, hidden), act)
+        nn.init.orthogonal_(self.fc[0].weight, gain=2**0.5)
+        nn.init.zeros_(self.fc[0].bias)
+
+    def forward(self, *obs: torch.Tensor) -> torch.Tensor:
+        batch = obs[0].shape[: obs[0].ndim - len(self.shapes[0])]
+        parts = []
+        for i, (x, shape) in enumerate(zip(obs, self.shapes)):
+            if i == self.image_index:  # uint8 HWC -> float CHW in [0, 1]
+                parts.append(self.conv(x.reshape(-1, *shape).float().permute(0, 3, 1, 2) / 255.0))
+            else:  # scalar entries (MiniGrid's direction) become one column
+                parts.append(x.reshape(-1, int(torch.Size(shape).numel())).float())
+        return self.fc(torch.cat(parts, dim=-1)).reshape(*batch, -1)
+
+
+class ActorCriticTrunk(nn.Module):
+    """One encoder for both heads (``shared``) or one each: ``obs -> (hidden_pi, hidden_v)``."""
+
+    def __init__(self, make_encoder, shared: bool) -> None:
+        super().__init__()
+        self.pi = make_encoder()
+        self.v = None if shared else make_encoder()
+
+    def forward(self, *obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.pi(*obs)
+        return h, (h if self.v is None else self.v(*obs))
+
+
+def _image_index(keys: list[str], shapes: list[tuple[int, ...]]) -> int:
+    images = [i for i, s in enumerate(shapes) if len(s) == 3 and s[-1] in (1, 3, 4)]
+    if len(images) != 1:
+        raise EnvSetupError(f"network.kind=cnn needs exactly one image key ([H, W, C]) among network.observation_keys"
+                            f" {keys}; shapes {shapes}")  # fmt: skip
+    return images[0]
+
+
+def build_actor_critic(observation_spec, action_spec, net: NetworkConfig) -> ActorValueOperator:
+    """The baseline's ``ActorValueOperator`` for unbatched env specs; the action head follows the action spec."""
+    missing = [k for k in net.observation_keys if k not in observation_spec.keys()]
+    if missing:
+        known = ", ".join(str(k) for k in observation_spec.keys())
+        raise EnvSetupError(f"network.observation_keys: {missing} not in the env's observations ({known})")
+    shapes = [tuple(observation_spec[k].shape) for k in net.observation_keys]
+    image = _image_index(net.observation_keys, shapes) if net.kind == "cnn" else None
+    trunk = ActorCriticTrunk(lambda: ObservationEncoder(shapes, net.hidden, image, tuple(net.cnn_channels)),
+                             net.shared)  # fmt: skip
+    common = TensorDictModule(trunk, in_keys=list(net.observation_keys), out_keys=[PI, V])
+    actor = build_actor(action_spec, net.hidden, net.hidden, in_key=PI)
+    critic = build_critic(net.hidden, net.hidden, in_key=V)
+    return ActorValueOperator(common, actor, critic)

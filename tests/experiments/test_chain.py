@@ -1,0 +1,132 @@
+"""Transfer (run.init_from), recipe chains (freamer-rl chain) and the MultiRoom sizes minigrid does not register."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+from torchrl.envs.utils import check_env_specs
+
+from freamer_rl import cli
+from freamer_rl.experiments.chain import load_chain, run_chain
+from freamer_rl.errors import ConfigError
+from freamer_rl.trainers.registry import load_config
+from freamer_rl.errors import CheckpointError, EnvSetupError
+from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.run.envs import make_single_env
+from freamer_rl_envs.minigrid import make_minigrid_env
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ROOT / "recipes" / "tiny.yaml"
+CHAINS = sorted((ROOT / "recipes").glob("*.chain.yaml"))
+SHRINK = ["env.num_envs=2", "ppo.frames_per_batch=32", "ppo.sequence_length=8", "ppo.minibatch_size=16",
+          "ppo.epochs=1", "run.total_frames=64", "logging.progress_bar=false", "model.compile=false"]  # fmt: skip
+
+
+def _train_tiny(run_dir: Path, *overrides: str) -> dict:
+    return Trainer(load_config(TINY, list(overrides)), run_dir, resume=True).train()
+
+
+def _weights(trainer: Trainer) -> dict:
+    return {k: v.clone() for k, v in trainer.modules.actor_value.state_dict().items()}
+
+
+def test_init_from_copies_the_weights_only(tmp_path):
+    _train_tiny(tmp_path / "a")
+    trained = Trainer(load_config(TINY), tmp_path / "a")  # resumes: holds a's final weights
+    source = _weights(trained)
+    trained._lock.release()
+    b = Trainer(load_config(TINY, ["env.id=MiniGrid-DoorKey-5x5-v0", f"run.init_from={tmp_path / 'a'}"]),
+                tmp_path / "b")  # fmt: skip
+    for key, value in _weights(b).items():
+        assert torch.equal(value, source[key]), key
+    assert b.frames == 0 and b.stats.episodes == 0 and not b.optimizer.state  # a fresh run: weights only
+    b._lock.release()
+
+
+def test_init_from_refuses_another_model_or_no_checkpoint(tmp_path):
+    _train_tiny(tmp_path / "a")
+    with pytest.raises(CheckpointError, match=r"run.init_from: .* another model \(model.embed_dim: checkpoint 32"):
+        Trainer(load_config(TINY, ["model.embed_dim=16", f"run.init_from={tmp_path / 'a'}"]), tmp_path / "b")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match="holds no checkpoint"):
+        Trainer(load_config(TINY, [f"run.init_from={tmp_path / 'empty'}"]), tmp_path / "c")
+
+
+def test_a_resumed_run_keeps_its_own_weights(tmp_path):
+    _train_tiny(tmp_path / "a")
+    _train_tiny(tmp_path / "b", "run.seed=5")
+    own = Trainer(load_config(TINY, ["run.seed=5"]), tmp_path / "b")
+    expected = _weights(own)
+    own._lock.release()
+    resumed = Trainer(load_config(TINY, ["run.seed=5", f"run.init_from={tmp_path / 'a'}"]), tmp_path / "b")
+    assert all(torch.equal(v, expected[k]) for k, v in _weights(resumed).items())
+    resumed._lock.release()
+
+
+def _write_chain(folder: Path, stages: str) -> Path:
+    shutil.copy(TINY, folder / "tiny.yaml")
+    path = folder / "c.chain.yaml"
+    path.write_text(f"name: demo\nseed: 3\noutput_dir: {folder / 'runs'}\nstages:\n{stages}")
+    return path
+
+
+def test_chain_trains_stages_in_order_and_resumes(tmp_path):
+    path = _write_chain(tmp_path, "  - {name: empty, recipe: tiny.yaml}\n"
+                                  "  - {name: rooms, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n")
+    rows = run_chain(path)
+    root = tmp_path / "runs" / "demo-s3"
+    assert [r["stage"] for r in rows] == ["empty", "rooms"] and [r["chain_frames"] for r in rows] == [256, 512]
+    config_text = (root / "rooms" / "config.yaml").read_text()  # the second stage starts from the first's weights
+    assert f"init_from: {root / 'empty'}" in config_text and "seed: 3" in config_text
+    assert json.loads((root / "chain_summary.json").read_text())["stages"] == rows
+    stamp = (root / "rooms" / "summary.json").stat().st_mtime
+    again = run_chain(path)  # finished stages are read back, not retrained
+    assert again == rows and (root / "rooms" / "summary.json").stat().st_mtime == stamp
+    assert "| rooms | MiniGrid-MultiRoom-N1-S4-v0 | 256 | 512 |" in (root / "chain_summary.md").read_text()
+
+
+@pytest.mark.parametrize(
+    "stages, message",
+    [
+        ("  - {name: a, recipe: ../tiny.yaml}\n", "leaves the chain file's folder"),
+        ("  - {name: a, recipe: missing.yaml}\n", "no such recipe file"),
+        ("  - {name: a, recipe: tiny.yaml}\n  - {name: a, recipe: tiny.yaml}\n", "'a' is used twice"),
+        ("  - {name: ../a, recipe: tiny.yaml}\n", r"stages\[0\].name"),
+        ("  []\n", "at least one stage"),
+    ],
+)
+def test_chain_file_errors_name_the_field(tmp_path, stages, message):
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(ConfigError, match=message):
+        load_chain(_write_chain(tmp_path / "sub", stages))
+
+
+@pytest.mark.parametrize("chain", CHAINS, ids=[c.name for c in CHAINS])
+def test_every_chain_recipe_runs_shrunk(chain, tmp_path):
+    """Every stage of the shipped chains, shrunk to two tiny batches (the env ids and transfers are real)."""
+    rows = run_chain(chain, [f"output_dir={tmp_path}"], stage_overrides=SHRINK)
+    assert len(rows) == len(load_chain(chain).stages) and all(r["frames"] == 64 for r in rows)
+
+
+def test_chain_cli(tmp_path, capsys):
+    path = _write_chain(tmp_path, "  - {name: only, recipe: tiny.yaml}\n")
+    assert cli.main(["chain", str(path)]) == 0
+    assert (tmp_path / "runs" / "demo-s3" / "chain_summary.json").is_file()
+    assert cli.main(["chain", str(path), "seed=x"]) == 2  # a bad override: one error line
+
+
+@pytest.mark.parametrize("env_id, rooms, size", [("MiniGrid-MultiRoom-N3-S4-v0", 3, 4), ("MiniGrid-MultiRoom-N5-S5-v0", 5, 5)])
+def test_unregistered_multiroom_sizes_are_built(env_id, rooms, size):
+    env = make_minigrid_env(env_id)
+    check_env_specs(env, seed=0)
+    assert (env._unwrapped.minNumRooms, env._unwrapped.maxNumRooms, env._unwrapped.maxRoomSize) == (rooms, rooms, size)
+    env.close()
+
+
+def test_impossible_multiroom_size_is_one_error():
+    with pytest.raises(EnvSetupError, match="MultiRoom sizes need"):
+        make_single_env(load_config(TINY, ["env.id=MiniGrid-MultiRoom-N9-S4-v0"]))
