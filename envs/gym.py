@@ -1,10 +1,17 @@
-"""Gymnasium adapter: any registered gymnasium id through TorchRL's own ``GymEnv``.
+"""Gymnasium adapter: any registered gymnasium id through TorchRL's own ``GymWrapper``.
 
-``make_gym_env("CartPole-v1")`` is ``GymEnv("CartPole-v1", categorical_action_encoding=True)`` plus, when needed,
+``make_gym_env("CartPole-v1")`` is ``GymWrapper(gymnasium.make("CartPole-v1"), categorical_action_encoding=True)``
+(what ``GymEnv("CartPole-v1", ...)`` builds) plus, when needed,
 ``DoubleToFloat`` (float64 observations become float32, the model's dtype) and an optional reward history (the last
 ``H`` rewards under ``"reward_history"``, most recent last, zeros after reset) for FreamerV1's reward modality.
 Keys are TorchRL's: a Box observation arrives as ``"observation"``, a Dict observation as its own keys; map them to
 modalities with the recipe's ``model.observation_keys`` (e.g. ``{vector: [observation]}``).
+
+Any id gymnasium can make works: a registered one, gymnasium's ``module:EnvId`` form (``module`` is imported first,
+so an env registered in the user's own module is found), or an id the recipe's ``env.imports`` modules register
+(``env.imports: [minigrid]`` then ``MiniGrid-Empty-5x5-v0``). Observation entries TorchRL has no spec for (gymnasium
+``Text``, MiniGrid's ``MissionSpace``) are left out of a Dict observation with one log line; the env adapter that
+knows them (``minigrid``) turns the mission into tokens instead.
 
 Discrete actions are integer indices (``Categorical``), so the policy's ``"action"`` matches what a TorchRL user's
 own ``GymEnv(..., categorical_action_encoding=True)`` expects; Box actions stay a ``Bounded`` float spec.
@@ -13,18 +20,28 @@ own ``GymEnv(..., categorical_action_encoding=True)`` expects; Box actions stay 
 from __future__ import annotations
 
 import difflib
+import importlib
+import logging
 from typing import Any
 
 import gymnasium
 import torch
+from gymnasium import spaces
+from gymnasium.wrappers import FilterObservation
 from tensordict import TensorDictBase
 from torchrl.data import Unbounded
 from torchrl.envs import Compose, DoubleToFloat, EnvBase, Transform, TransformedEnv
-from torchrl.envs.libs.gym import GymEnv
+from torchrl.envs.libs.gym import GymWrapper
 
 from freamer_rl.run.env_registry import EnvAdapter
 
 __all__ = ["ADAPTER", "RewardHistory", "make_gym_env"]
+
+logger = logging.getLogger(__name__)
+
+#: gymnasium spaces TorchRL converts to specs (Dict and Tuple of these too)
+_TORCHRL_SPACES = (spaces.Box, spaces.Discrete, spaces.MultiDiscrete, spaces.MultiBinary)
+_reported_drops: set[str] = set()  # env ids whose left-out entries were logged (once, not once per sub-env)
 
 
 class RewardHistory(Transform):
@@ -62,11 +79,46 @@ class RewardHistory(Transform):
 
 
 def _check_env_id(env_id: str) -> None:
-    if env_id in gymnasium.envs.registry:
+    """``env_id`` or, in gymnasium's ``module:EnvId`` form, ``EnvId`` after importing ``module`` is registered."""
+    module, _, name = env_id.rpartition(":")
+    if module:
+        try:
+            importlib.import_module(module)
+        except ImportError as err:
+            raise ValueError(f"the module {module!r} it names cannot be imported ({err}); is it installed or on "
+                             "PYTHONPATH?") from None  # fmt: skip
+    if name in gymnasium.envs.registry:
         return
-    close = difflib.get_close_matches(env_id, list(gymnasium.envs.registry), n=3, cutoff=0.6)
+    close = difflib.get_close_matches(name, list(gymnasium.envs.registry), n=3, cutoff=0.6)
     hint = f"did you mean {', '.join(repr(c) for c in close)}? " if close else ""
-    raise ValueError(f"unknown gymnasium env id '{env_id}': {hint}(any id in gymnasium.envs.registry, e.g. 'CartPole-v1')")
+    where = f"module {module!r} registers no such id; " if module else ""
+    raise ValueError(f"unknown gymnasium env id '{env_id}': {where}{hint}(any id in gymnasium.envs.registry, e.g. "
+                     "'CartPole-v1', 'my_module:MyEnv-v0', or list the registering module in env.imports)")
+
+
+def _torchrl_holds(space: spaces.Space) -> bool:
+    if isinstance(space, spaces.Dict):
+        return all(_torchrl_holds(s) for s in space.spaces.values())
+    if isinstance(space, spaces.Tuple):
+        return all(_torchrl_holds(s) for s in space.spaces)
+    return isinstance(space, _TORCHRL_SPACES)
+
+
+def _without_unheld_entries(env: gymnasium.Env, env_id: str) -> gymnasium.Env:
+    """``env`` with the Dict-observation entries TorchRL cannot hold filtered out (one log line per env id)."""
+    space = env.observation_space
+    if _torchrl_holds(space):
+        return env
+    entries = space.spaces if isinstance(space, spaces.Dict) else {}
+    kept = [k for k, s in entries.items() if _torchrl_holds(s)]
+    if not kept:
+        raise ValueError(f"its observation space {space} has no TorchRL spec (supported: Box, Discrete, "
+                         "MultiDiscrete, MultiBinary and Dicts of them)")  # fmt: skip
+    if env_id not in _reported_drops:
+        _reported_drops.add(env_id)
+        dropped = ", ".join(f"{k} ({type(s).__name__})" for k, s in entries.items() if k not in kept)
+        logger.info("gym adapter: %s: observation entries without a TorchRL spec are left out: %s", env_id, dropped)
+    return FilterObservation(env, kept)
 
 
 def make_gym_env(
@@ -75,12 +127,14 @@ def make_gym_env(
     """One unbatched gymnasium env as a TorchRL env (the ``gym`` entry point of the ``freamer_rl.envs`` group).
 
     Raises:
-        ValueError: unknown env id (one line, with close matches) or a negative ``reward_history``.
+        ValueError: unknown env id (one line, with close matches), a ``module:`` that cannot be imported, an
+            observation space without a TorchRL spec, or a negative ``reward_history``.
     """
     if int(reward_history) != reward_history or reward_history < 0:
         raise ValueError(f"reward_history: expected an integer >= 0, got {reward_history!r}")
     _check_env_id(env_id)
-    base = GymEnv(env_id, categorical_action_encoding=True, device=device)
+    base = GymWrapper(_without_unheld_entries(gymnasium.make(env_id), env_id), categorical_action_encoding=True,
+                      device=device)  # fmt: skip
     transforms: list[Transform] = []
     doubles = [k for k, s in base.observation_spec.items(True, True) if s.dtype == torch.float64]
     if doubles:

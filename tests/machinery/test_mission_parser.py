@@ -423,3 +423,30 @@ def test_trainer_with_the_llm_parser_counts_its_fallbacks(fresh_factory, model_d
     assert float(row["parser_fallbacks"]) >= 1  # Empty-5x5 has one mission: parsed once per env, then cached
     assert 0 < float(row["parser_hit_rate"]) < 1
     assert float(row["bonus_lang"]) != 0
+
+
+def _copy_without_weights(source: Path, target: Path) -> Path:
+    import shutil
+
+    shutil.copytree(source, target, ignore=shutil.ignore_patterns("*.safetensors"))
+    return target
+
+
+def test_llm_refuses_pickle_based_weights(tmp_path, model_dirs):
+    """A folder with only ``pytorch_model.bin`` is refused in one line naming the file and what is needed."""
+    folder = _copy_without_weights(model_dirs["random"], tmp_path / "pickled")
+    (folder / "pytorch_model.bin").write_bytes(b"not even read")  # never unpickled: refused from its name
+    with pytest.raises(MissingWeightsError) as info:
+        LLMMissionParser(folder, VOCAB)
+    _assert_weights_line(info.value, str(folder))
+    assert "pytorch_model.bin" in str(info.value) and "model.safetensors" in str(info.value)
+
+
+def test_llm_refuses_a_damaged_safetensors_file(tmp_path, model_dirs):
+    folder = _copy_without_weights(model_dirs["random"], tmp_path / "damaged")
+    whole = (model_dirs["random"] / "model.safetensors").read_bytes()
+    (folder / "model.safetensors").write_bytes(whole[: len(whole) // 3])  # a download cut short
+    with pytest.raises(MissingWeightsError) as info:
+        LLMMissionParser(folder, VOCAB)
+    _assert_weights_line(info.value, str(folder))
+    assert "cannot load the model" in str(info.value)

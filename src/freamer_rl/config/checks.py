@@ -9,19 +9,19 @@ floats to any finite value.
 from __future__ import annotations
 
 import dataclasses
+import importlib.util
 import math
 import os
 import re
 from collections.abc import Callable, Hashable, Iterator
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
+import torch
 import yaml
 
 from freamer_rl.errors import ConfigError
 
-if TYPE_CHECKING:
-    import torch
 
 __all__ = ["Range", "POSITIVE", "NON_NEGATIVE", "UNIT_INTERVAL", "check_recipe_file", "check_device_name",
            "resolve_device", "config_numbers", "check_numbers", "check_collector", "check_ray_backend",
@@ -86,8 +86,6 @@ def resolve_device(name: str) -> torch.device:
     Checked when a run starts rather than while loading, so that a config trained on a GPU still loads (evaluation,
     parameter tables) on a CPU-only machine.
     """
-    import torch
-
     check_device_name(name)
     device = torch.device(name)
     if device.type == "cuda":
@@ -170,8 +168,6 @@ def check_ray_backend(section: Any, policy: Any) -> None:
     Checked here rather than while loading, so that a run trained through Ray still loads and evaluates where ray
     is not installed.
     """
-    import importlib.util
-
     if importlib.util.find_spec("ray") is None:
         raise ConfigError('collector.backend: got \'ray\', but ray is not installed; pip install -c constraints.txt '
                           '-e ".[ray]" (or collector.backend=local)')  # fmt: skip

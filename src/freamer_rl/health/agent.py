@@ -23,6 +23,7 @@ from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint, save_checkpoint
+from freamer_rl.run.params import parameter_rows
 from freamer_rl.errors import ConfigError
 from freamer_rl.errors import CheckpointError
 from freamer_rl.health.config import (
@@ -318,18 +319,12 @@ def logits_net(actor: ProbabilisticActor) -> nn.Module:
 
 
 def parameter_table(agent: HealthAgent) -> list[dict]:
-    """Rows ``{"component", "trainable", "frozen"}`` (encoder, RSSM + heads + decoder, actor, value) and ``Total``,
-    the format of :func:`freamer_rl.model.params.format_parameter_table`."""
+    """Rows ``{"component", "trainable", "frozen"}`` (encoder, RSSM + heads + decoder, actor, value) and ``Total``
+    (:func:`freamer_rl.run.params.parameter_rows`, the format of ``format_parameter_table``)."""
     wm = agent.world_model
-    enc_ids = {id(p) for p in wm.encoder.parameters()}
-    groups = {
-        f"encoder ({agent.cfg.encoder.kind})": list(wm.encoder.parameters()),
-        "RSSM, decoder, reward/continue heads": [p for p in wm.parameters() if id(p) not in enc_ids],
-        "actor": list(agent.actor.parameters()),
-        "value": list(agent.value.parameters()),
-    }
-    rows = [{"component": name, "trainable": sum(p.numel() for p in ps if p.requires_grad),
-             "frozen": sum(p.numel() for p in ps if not p.requires_grad)} for name, ps in groups.items()]  # fmt: skip
-    rows.append({"component": "Total", "trainable": sum(r["trainable"] for r in rows),
-                 "frozen": sum(r["frozen"] for r in rows)})  # fmt: skip
-    return rows
+    return parameter_rows({
+        f"encoder ({agent.cfg.encoder.kind})": wm.encoder,
+        "RSSM, decoder, reward/continue heads": wm,  # the encoder's parameters are already counted above
+        "actor": agent.actor,
+        "value": agent.value,
+    })  # fmt: skip

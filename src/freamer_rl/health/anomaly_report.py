@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 import torch.nn.functional as F
 
 from freamer_rl.run import env_registry
@@ -36,8 +37,6 @@ def record_episode(
     at ``t``), ``activity``, ``action``, ``kl`` (``KL(q || p)`` of the posterior after observation ``t``, J.5),
     ``reward`` and ``done`` (after the action), ``is_first``.
     """
-    from tqdm.auto import tqdm
-
     cfg = agent.cfg
     wm = agent.world_model
     wm.eval()

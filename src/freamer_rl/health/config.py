@@ -10,11 +10,13 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
 import torch
 
-from freamer_rl.config.checks import check_numbers, run_name_problem
+from freamer_rl.config.checks import check_logging, check_numbers, run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, load_config
+from freamer_rl.config.sections import BASE_RANGES, LoggingConfig, RunConfig
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
 
@@ -25,6 +27,7 @@ __all__ = [
     "HealthImaginationConfig",
     "HealthCollectConfig",
     "HealthEvalConfig",
+    "HealthLoggingConfig",
     "HealthRunConfig",
     "HealthConfig",
     "validate_health_config",
@@ -158,13 +161,23 @@ class HealthEvalConfig:
 
 
 @dataclass
+class HealthLoggingConfig:
+    """The shared ``logging`` section's fields that a health run reads (same keys, same defaults, same checks);
+    health logs once per iteration and checkpoints after every one, so the other fields do not apply."""
+
+    backend: str = LoggingConfig.backend  # TorchRL logger of metrics/attempt_NN: csv | wandb | tensorboard
+    progress_bar: bool = LoggingConfig.progress_bar
+
+
+@dataclass
 class HealthRunConfig:
-    seed: int = 0
-    threads: int = 1
-    output_dir: str = "runs"
-    name: str | None = None
-    progress_bar: bool = True
-    logger: str = "csv"  # TorchRL logger of metrics/attempt_NN: csv | wandb | tensorboard
+    """The shared ``run`` section's fields that a health run reads (same keys and defaults); a health run's length is
+    ``collect.*`` and it trains on the CPU, so ``total_frames`` / ``device`` / ``init_from`` do not apply."""
+
+    seed: int = RunConfig.seed
+    threads: int = RunConfig.threads
+    output_dir: str = RunConfig.output_dir
+    name: str | None = RunConfig.name
 
 
 @dataclass
@@ -175,7 +188,11 @@ class HealthConfig:
     imagination: HealthImaginationConfig = field(default_factory=HealthImaginationConfig)
     collect: HealthCollectConfig = field(default_factory=HealthCollectConfig)
     eval: HealthEvalConfig = field(default_factory=HealthEvalConfig)
+    logging: HealthLoggingConfig = field(default_factory=HealthLoggingConfig)
     run: HealthRunConfig = field(default_factory=HealthRunConfig)
+
+    #: keys of earlier releases, refused with the key that replaced them (one key per setting across trainers)
+    RENAMED: ClassVar[dict[str, str]] = {"run.logger": "logging.backend", "run.progress_bar": "logging.progress_bar"}
 
 
 def _in(lo: float, hi: float, lo_open: bool = False):
@@ -186,7 +203,8 @@ _POS, _NONNEG = (lambda v: v > 0, "> 0"), (lambda v: v >= 0, ">= 0")
 #: Number ranges of the health schema for :func:`freamer_rl.config.checks.check_numbers` (elsewhere ints must be
 #: >= 1 and floats finite).
 HEALTH_RANGES = {
-    **{k: _NONNEG for k in ("env.data_seed", "eval.seed", "run.seed", "collect.iterations", "collect.prefill_frames",
+    "run.seed": BASE_RANGES["run.seed"],
+    **{k: _NONNEG for k in ("env.data_seed", "eval.seed", "collect.iterations", "collect.prefill_frames",
                             "world_model.train_steps", "world_model.prefill_train_steps", "imagination.updates",
                             "eval.every", "encoder.fm_noise_std", "world_model.beta", "world_model.free_nats",
                             "world_model.reward_scale", "world_model.lambda_fm", "world_model.lambda_smooth",
@@ -207,8 +225,7 @@ def validate_health_config(cfg: HealthConfig) -> None:
     check_numbers(cfg)
     if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
         raise ConfigError(f"run.name: {problem}")
-    if cfg.run.logger not in ("csv", "wandb", "tensorboard"):
-        raise ConfigError(f"run.logger: expected csv, wandb or tensorboard, got {cfg.run.logger!r}")
+    check_logging(cfg.logging)
     if cfg.encoder.kind not in ENCODER_KINDS:
         raise ConfigError(f"encoder.kind: expected one of {', '.join(ENCODER_KINDS)}, got {cfg.encoder.kind!r}")
     for m in cfg.encoder.gate_init:

@@ -32,6 +32,9 @@ from tensordict import TensorDictBase, unravel_key
 from tensordict.nn import TensorDictModuleBase
 from tensordict.utils import NestedKey
 from torch import nn
+from torchrl.data import Unbounded
+from torchrl.envs.transforms import TensorDictPrimer
+from torchrl.modules import recurrent_mode
 
 from freamer_rl.layers.checks import check_finite, is_transformed, value_checks_active
 from freamer_rl.layers.compiled import CompileOrEager
@@ -314,8 +317,6 @@ class DNCModule(TensorDictModuleBase):
     @property
     def recurrent_mode(self) -> bool:
         """``torchrl.modules.recurrent_mode()`` if a context set it, else ``default_recurrent_mode``."""
-        from torchrl.modules import recurrent_mode
-
         rm = recurrent_mode()
         if rm is None:
             return bool(self._recurrent_mode)
@@ -326,9 +327,6 @@ class DNCModule(TensorDictModuleBase):
 
         ``expand_specs=True`` lets the primer follow the env's batch size (as ``LSTMModule`` does).
         """
-        from torchrl.data import Unbounded
-        from torchrl.envs.transforms import TensorDictPrimer
-
         return TensorDictPrimer(
             {self.memory_key: Unbounded(shape=self.dnc.memory_shape, dtype=torch.float32)},
             expand_specs=True,

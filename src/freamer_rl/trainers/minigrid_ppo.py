@@ -128,6 +128,7 @@ class Trainer(RunLoop):
     """PPO on FreamerV1 with TorchRL parts. ``Trainer(cfg, run_dir).train()``; see the module docstring."""
 
     trainer_name = "minigrid_ppo"
+    trainer_label = "FreamerV1 PPO"  # the registry key is historical: it trains MiniGrid, gym and Crafter envs alike
     structural = STRUCTURAL
 
     def __init__(self, cfg: FreamerConfig, run_dir: str | Path, *, resume: bool = True) -> None:
@@ -206,6 +207,9 @@ class Trainer(RunLoop):
 
     def _learn(self, data: TensorDictBase) -> dict[str, float]:
         return self._update(self._compute_advantage(data))
+
+    def _compiling(self) -> bool:
+        return self.cfg.model.compile
 
     def _after_open(self, ckpt_path: Path | None) -> None:
         if ckpt_path is not None:

@@ -18,6 +18,7 @@ import math
 import os
 from collections.abc import Sequence
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
@@ -268,8 +269,6 @@ class KLAnomalyTransform(Transform):
 
 def _np(x):
     """Tensor or array-like -> flat numpy array."""
-    import numpy as np
-
     if isinstance(x, torch.Tensor):
         return x.detach().cpu().reshape(-1).numpy()
     return np.asarray(x).reshape(-1)
@@ -322,7 +321,6 @@ def plot_anomaly_timeline(
         threshold: optional ``[T]`` KL threshold curve.
     Returns the path written.
     """
-    import numpy as np
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

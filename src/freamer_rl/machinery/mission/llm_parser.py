@@ -2,7 +2,7 @@
 
 The model (Qwen2.5-Instruct in the paper) is loaded through ``transformers`` from a local directory only; nothing is
 downloaded and nothing ever falls back to random weights: a missing directory, config, tokenizer or weight file is a
-one-line :class:`MissingWeightsError`. Decoding is greedy. The answer is trusted only after validation: the first
+one-line :class:`MissingWeightsError`, and so are pickle-based weights (``pytorch_model.bin``: unpickling runs code) and damaged files (weights load with ``use_safetensors=True`` only). Decoding is greedy. The answer is trusted only after validation: the first
 balanced ``{...}`` of the generated text must be JSON of the expected schema whose every object, colour and action is
 a vocabulary word. Any failure is answered by the fallback parser (the regex parser by default, Eq. A9) and counted
 per reason. The mission is data inside the prompt; whatever it says, validation keeps the result inside the
@@ -25,7 +25,9 @@ from freamer_rl.torchvision_compat import import_torchvision_safely
 logger = logging.getLogger(__name__)
 
 FALLBACK_REASONS = ("generation_error", "not_json", "schema", "out_of_vocabulary")
-_WEIGHT_PATTERNS = ("*.safetensors", "pytorch_model*.bin", "model*.bin")
+_WEIGHT_PATTERNS = ("*.safetensors",)
+# pickle-based weights are never loaded: unpickling a file runs whatever code it names
+_PICKLE_PATTERNS = ("pytorch_model*.bin", "model*.bin", "*.pt", "*.pth", "*.ckpt")
 _TOKENIZER_FILES = ("tokenizer.json", "tokenizer_config.json", "vocab.json", "tokenizer.model")
 _CANNOT_IMPORT = 'transformers cannot be imported ({}); pip install -e ".[llm]" (or use shaping.language.parser=regex)'
 _TARGET_KEYS = {"object", "color"}
@@ -92,7 +94,13 @@ def check_model_dir(directory: str | Path | None) -> Path:
     if not any((path / name).is_file() for name in _TOKENIZER_FILES):
         raise MissingWeightsError(missing_weights_message(path, "no tokenizer files"))
     if not any(any(path.glob(pattern)) for pattern in _WEIGHT_PATTERNS):
-        raise MissingWeightsError(missing_weights_message(path, "no weight files (*.safetensors or *.bin)"))
+        pickled = sorted({p.name for pattern in _PICKLE_PATTERNS for p in path.glob(pattern)})
+        if pickled:
+            raise MissingWeightsError(missing_weights_message(
+                path, f"found only pickle-based weights ({', '.join(pickled[:3])}), which are never loaded (unpickling "
+                "runs code); needs model.safetensors (the Hub repo's own, or save_pretrained(..., "
+                "safe_serialization=True))"))  # fmt: skip
+        raise MissingWeightsError(missing_weights_message(path, "no weight files (model.safetensors)"))
     return path
 
 
@@ -266,11 +274,12 @@ class LLMMissionParser:
         try:
             tokenizer = auto_tokenizer.from_pretrained(str(self.model_dir), local_files_only=True)
             model, info = auto_model.from_pretrained(
-                str(self.model_dir), local_files_only=True, output_loading_info=True
+                str(self.model_dir), local_files_only=True, output_loading_info=True, use_safetensors=True
             )
-        except (OSError, ValueError, RuntimeError, KeyError) as exc:
+        except Exception as exc:  # noqa: BLE001 -- a damaged file raises safetensors' own error type, among others
             raise MissingWeightsError(
-                missing_weights_message(self.model_dir, f"cannot load the model ({_first_line(exc, 160)})")
+                missing_weights_message(self.model_dir, f"cannot load the model, damaged or incomplete files? "
+                                        f"({_first_line(exc, 160)})")
             ) from exc
         missing = list(info.get("missing_keys") or [])
         if missing:  # transformers would initialise these at random: refuse

@@ -176,10 +176,19 @@ def _dreamer_ranges() -> dict[str, Range]:
 
 
 @dataclass
+class DreamerOptimConfig(OptimConfig):
+    """The world model's Adam with DreamerV3's defaults (a recipe's partial ``optim`` section keeps them)."""
+
+    lr: float = 1e-4
+    eps: float = 1e-8
+    max_grad_norm: float = 1000.0
+
+
+@dataclass
 class DreamerConfig(BaseConfig):
     """``trainer: dreamer_v3``: the shared base (``optim``: the world model's Adam) and ``dreamer``."""
 
-    optim: OptimConfig = field(default_factory=lambda: OptimConfig(lr=1e-4, eps=1e-8, max_grad_norm=1000.0))
+    optim: DreamerOptimConfig = field(default_factory=DreamerOptimConfig)
     dreamer: DreamerSection = field(default_factory=DreamerSection)
 
     RANGES: ClassVar[dict[str, Range]] = _dreamer_ranges()
