@@ -457,4 +457,5 @@ ADAPTER = EnvAdapter(
     options=_minigrid_options,
     success=_minigrid_success,
     make_batched_env=make_minigrid_vec_env,
+    writes=("lang_reward",),  # R_lang of the parsed mission (option language_reward)
 )

@@ -59,7 +59,12 @@ def _parser() -> argparse.ArgumentParser:
         "chain", help="train a chain of recipes (a curriculum), each stage starting from the previous one's weights"
     )
     p_chain.add_argument("chain", help="path to a chain YAML (freamer_rl.experiments.chain)")
-    p_chain.add_argument("overrides", nargs="*", help="dotted overrides of the chain file, e.g. seed=1")
+    p_chain.add_argument(
+        "overrides", nargs="*",
+        help="dotted overrides: a chain-file key (name, seed, output_dir, overrides, stages) edits the chain file, "
+        "e.g. seed=1; any other key goes to every stage after the stage's own, so it wins, e.g. "
+        "run.total_frames=2048 shrinks every stage",
+    )
 
     p_suite = sub.add_parser(
         "suite", help="a benchmark suite: recipes x envs x seeds, resumable; CSV/Markdown tables and learning curves"
@@ -147,7 +152,7 @@ def main(argv: list[str] | None = None) -> int:
     args, unknown = parser.parse_known_args(argv)
     if args.command == "health":  # its own parser takes everything after "health", options included
         args.health_args = unknown + args.health_args
-    elif args.command in ("train", "params") and unknown and all("=" in a and not a.startswith("-") for a in unknown):
+    elif args.command in ("train", "params", "chain") and unknown and all("=" in a and not a.startswith("-") for a in unknown):
         # overrides after an option (train recipe.yaml --run-dir D optim.lr=1e-3): argparse leaves them unparsed
         args.overrides = list(args.overrides) + unknown
     elif unknown:

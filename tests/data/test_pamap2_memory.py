@@ -16,8 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from freamer_rl.data import N_COLUMNS, synthetic_recording
-from freamer_rl.data.pamap2_synthetic import _format_rows
+from freamer_rl.data import N_COLUMNS, write_synthetic_pamap2
 
 MB = 1 << 20
 TARGET_BYTES = 60 * MB
@@ -60,9 +59,9 @@ print(json.dumps({"rss_increase": after - before, "traced_peak": traced_peak, "r
 def big_files(tmp_path_factory) -> dict:
     """A valid ~60 MB file and the same with a non-numeric field 100 lines before the end."""
     root = tmp_path_factory.mktemp("pamap2_big")
-    rec = synthetic_recording(101, duration_s=60.0, seed=0)
     # one minute of real-looking rows, repeated with continuing timestamps (formatting every row would be slow)
-    rows = [line.split(" ", 1)[1] for line in _format_rows(rec.to_array()).splitlines()]
+    minute = write_synthetic_pamap2(root / "minute", subjects=(101,), duration_s=60.0, seed=0) / "subject101.dat"
+    rows = [line.split(" ", 1)[1] for line in minute.read_text().splitlines()]
     n = TARGET_BYTES // (sum(map(len, rows)) // len(rows) + 8)
     lines = [f"{10.0 + 0.01 * i:.2f} {rows[i % len(rows)]}" for i in range(n)]
     valid = root / "subject101.dat"

@@ -12,16 +12,16 @@ import numpy as np
 import pytest
 
 from freamer_rl.data import pamap2_parse
-from freamer_rl.data import Pamap2FormatError, load_pamap2_subject, synthetic_recording
-from freamer_rl.data.pamap2_synthetic import _format_rows
+from freamer_rl.data import Pamap2FormatError, load_pamap2_subject, write_synthetic_pamap2
 from test_pamap2 import _edit  # the same line editor as the loader's error tests
 
 BLOCKS = (600, 5000, pamap2_parse.BLOCK_BYTES)  # < one row, a few rows, the default
 
 
 @pytest.fixture(scope="module")
-def lines() -> list[str]:
-    return _format_rows(synthetic_recording(101, duration_s=8.0, seed=0).to_array()).splitlines()
+def lines(tmp_path_factory) -> list[str]:
+    pdir = write_synthetic_pamap2(tmp_path_factory.mktemp("pamap2_lines"), subjects=(101,), duration_s=8.0, seed=0)
+    return (pdir / "subject101.dat").read_text().splitlines()
 
 
 def _parse_all_ways(path, monkeypatch) -> list:
@@ -30,8 +30,9 @@ def _parse_all_ways(path, monkeypatch) -> list:
     for validate_first in (False, True):
         monkeypatch.setattr(pamap2_parse, "VALIDATE_FIRST_BYTES", 0 if validate_first else 1 << 40)
         for block in BLOCKS:
+            monkeypatch.setattr(pamap2_parse, "BLOCK_BYTES", block)  # read at call time
             try:
-                results.append(pamap2_parse._parse_dat(path, block_bytes=block))
+                results.append(load_pamap2_subject(path).to_array())
             except Pamap2FormatError as err:
                 results.append(str(err))
     return results

@@ -11,7 +11,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from freamer_rl import cli
-from freamer_rl.experiments.chain import load_chain, run_chain
+from freamer_rl.experiments.chain import load_chain, run_chain, split_overrides
 from freamer_rl.errors import ConfigError
 from freamer_rl.trainers.registry import load_config
 from freamer_rl.errors import CheckpointError, EnvSetupError
@@ -117,6 +117,30 @@ def test_chain_cli(tmp_path, capsys):
     assert cli.main(["chain", str(path)]) == 0
     assert (tmp_path / "runs" / "demo-s3" / "chain_summary.json").is_file()
     assert cli.main(["chain", str(path), "seed=x"]) == 2  # a bad override: one error line
+
+
+def test_chain_level_overrides_apply_after_each_stages_own(tmp_path):
+    """``freamer-rl chain FILE run.total_frames=...`` shrinks every stage, even one with its own frame cap."""
+    path = _write_chain(tmp_path, "  - {name: a, recipe: tiny.yaml, overrides: [run.total_frames=512]}\n"
+                                  "  - {name: b, recipe: tiny.yaml}\n")
+    assert cli.main(["--log-level", "WARNING", "chain", str(path), "run.total_frames=128", "seed=4"]) == 0
+    summary = json.loads((tmp_path / "runs" / "demo-s4" / "chain_summary.json").read_text())  # seed=4: the file's
+    assert summary["seed"] == 4 and [s["frames"] for s in summary["stages"]] == [128, 128]
+    assert "seed: 4" in (tmp_path / "runs" / "demo-s4" / "b" / "config.yaml").read_text()
+
+
+def test_split_overrides_follows_the_chain_keys():
+    chain, stages = split_overrides(["seed=1", "output_dir=x", "run.total_frames=2048", "overrides=[a=1]", "ppo.epochs=1"])
+    assert chain == ["seed=1", "output_dir=x", "overrides=[a=1]"] and stages == ["run.total_frames=2048", "ppo.epochs=1"]
+
+
+def test_an_output_dir_that_cannot_be_created_is_one_line_before_training(tmp_path, capsys):
+    (tmp_path / "afile").write_text("in the way")
+    path = _write_chain(tmp_path, "  - {name: a, recipe: tiny.yaml}\n")
+    assert cli.main(["chain", str(path), f"output_dir={tmp_path / 'afile' / 'runs'}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: output_dir: cannot create") and "afile" in err[0]
+    assert not (tmp_path / "runs").exists()  # nothing trained anywhere
 
 
 @pytest.mark.parametrize("env_id, rooms, size", [("MiniGrid-MultiRoom-N3-S4-v0", 3, 4), ("MiniGrid-MultiRoom-N5-S5-v0", 5, 5)])

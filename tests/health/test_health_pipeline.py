@@ -1,5 +1,5 @@
 """Health run pipeline: recipes/config validation, the online posterior filter of the policy, the imagination-horizon
-metric, a tiny end-to-end run_health and the anomaly report."""
+metric, a tiny end-to-end run of the registry entry (``trainers.health.train``) and the anomaly report."""
 
 import json
 import math
@@ -16,7 +16,7 @@ from freamer_rl.health.config import HealthConfig, health_config_from_dict, load
 from freamer_rl.health.anomaly_report import anomaly_report, record_episode
 from freamer_rl.health.agent import build_agent, load_agent, make_health_env
 from freamer_rl.world_model.metrics import imagination_horizon
-from freamer_rl.health.trainer import run_health
+from freamer_rl.trainers.health import train as train_health
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = {k: ROOT / "recipes" / "health" / f"health_{k}.yaml" for k in ("mlp", "cnn", "slotattn", "foundation")}
@@ -30,7 +30,7 @@ TINY = [
     "encoder.memory_slots=4", "encoder.memory_width=6", "imagination.num_seeds=16", "imagination.updates=1",
     "imagination.epochs=1", "imagination.num_minibatches=2", "imagination.policy_hidden=16", "eval.num_envs=2",
     "eval.horizon_context=4", "eval.horizon_max=8", "eval.mse_windows=4", "eval.horizon_windows=4",
-    "run.progress_bar=false",
+    "logging.progress_bar=false",
 ]
 
 
@@ -192,7 +192,7 @@ def tiny_run(tmp_path_factory):
         torch.manual_seed(0)
         run_dir = tmp_path_factory.mktemp("health_run")
         cfg = load_health_config(RECIPES["foundation"], [*TINY, "eval.every=1", "collect.iterations=2"])
-        summary = run_health(cfg, run_dir)
+        summary = train_health(cfg, run_dir)
     finally:
         if orig is not None:
             env_registry.get_env_factory = orig

@@ -423,14 +423,18 @@ def test_language_inference_cache_is_invalidated_by_parameter_updates():
     torch.manual_seed(0)
     enc = LanguageEncoder(vocab_size=20, out_dim=32, num_slots=2, heads=2, max_len=6).eval()
     tokens = torch.tensor([[2, 3, 4, 0, 0, 0], [5, 6, 0, 0, 0, 0]])
+    embedded = []  # rows that went through the encoder (a cache hit embeds none)
+    enc.embed.register_forward_hook(lambda module, args, out: embedded.append(args[0].shape[0]))
     with torch.no_grad():
         first = enc(tokens)
-        assert len(enc._cache) == 2
+        assert embedded == [2]
         assert torch.equal(enc(tokens), first)
+        assert embedded == [2]  # the second call was served from the cache
         # an optimiser step is an in-place update: the cache must not serve stale slots. (A uniform shift would be
         # invisible: the LayerNorms remove it, so perturb each weight differently.)
         enc.embed.weight.add_(0.5 * torch.randn_like(enc.embed.weight))
         updated = enc(tokens)
+        assert embedded == [2, 2]
     enc.cache_inference = False
     with torch.no_grad():
         assert torch.allclose(updated, enc(tokens), atol=1e-6)

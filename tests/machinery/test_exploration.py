@@ -156,15 +156,24 @@ def test_novelty_check_env_specs_minigrid(batched):
     env.close()
 
 
-def test_novelty_missing_key_and_digest():
+def test_novelty_missing_key_is_named():
     env = TransformedEnv(ScriptEnv(), NoveltyBonus(in_keys=["pixels"]))
     with pytest.raises(KeyError, match="pixels"):
         env.reset()
-    d = Driver()
-    d.bonus.digest_size = 16
-    d.reset()
-    assert d.go(1) == pytest.approx([0.5])
-    assert len(next(iter(d.bonus._counts))) == 16
+
+
+def test_novelty_digest_keys_count_like_exact_keys():
+    """A 16-byte BLAKE2b key per state gives the bonuses and counts of the exact keys (no collision among 7 states)."""
+    exact, digest = Driver(), Driver()
+    digest.bonus.digest_size = 16
+    script = [[1, 2, 1, 3], [2, 2, 4], [1, 5, 6]]
+    for episode in script:
+        assert exact.reset() == digest.reset()
+        for action in episode:
+            assert digest.go(action) == pytest.approx(exact.go(action)), (episode, action)
+    assert digest.bonus.counts_summary() == exact.bonus.counts_summary() == {"distinct_states": 7, "total_visits": 13}
+    with pytest.raises(ValueError, match="digest_size"):
+        NoveltyBonus(in_keys=["obs"], digest_size=65)
 
 
 # -- CuriosityModel ----------------------------------------------------------------------------------------------

@@ -28,22 +28,14 @@ def _rows(run_dir: Path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def _one_batch(trainer: Trainer):
-    collector = trainer._make_collector(trainer.cfg.ppo.frames_per_batch)
-    try:
-        return next(iter(collector))
-    finally:
-        collector.shutdown()
-
-
 def test_shaped_reward_is_the_mix_of_every_term_and_the_env_reward_is_kept(tmp_path):
     torch.manual_seed(0)
     cfg = load_config(TINY, ALL_SHAPING)
     trainer = Trainer(cfg, tmp_path / "run")
-    data = _one_batch(trainer)
+    data = trainer.collect_batch()
     env_reward = data["next", "reward"].clone()
     trainer.stats.recent_success.extend([1.0, 0.0, 0.0, 0.0])  # success rate 0.25: decay 1 - 1.25 * 0.25
-    data = trainer._compute_advantage(data)
+    data = trainer.compute_advantage(data)
     assert torch.equal(data["next", "reward"], env_reward)  # success is judged on the env's own reward
     for key in ("lang_reward", "novelty_bonus", "vl_reward", "curiosity_reward"):
         assert data["next", key].shape == env_reward.shape, key
@@ -77,7 +69,7 @@ def test_shaping_trains_logs_every_term_and_resumes_the_curiosity_model(tmp_path
 def test_no_shaping_leaves_ppo_on_the_env_reward(tmp_path):
     trainer = Trainer(load_config(TINY), tmp_path / "run")
     assert not trainer.shaper.active and trainer.gae.tensor_keys.reward == "reward"
-    data = trainer._compute_advantage(_one_batch(trainer))
+    data = trainer.compute_advantage(trainer.collect_batch())
     assert "shaped_reward" not in data["next"].keys()
 
 
@@ -93,7 +85,7 @@ def test_success_buffer_stores_successes_and_replays_them_with_weights(tmp_path)
     sizes = [float(r["success_buffer_size"]) for r in _rows(tmp_path / "run")]
     assert sizes[-1] > 0 and max(sizes) <= 16  # Empty-5x5: a random policy reaches the goal now and then
     # a minibatch as _update builds it: on-policy sequences plus corrected replayed ones, weighted per step
-    data = trainer._compute_advantage(_one_batch(trainer))
+    data = trainer.compute_advantage(trainer.collect_batch())
     seqs = split_sequences(data.exclude("next", *trainer.modules.trunk.out_keys), cfg.ppo.sequence_length)
     mb = trainer.replay.mix(seqs[:6])
     assert mb.shape[0] == 8  # 6 on-policy + 25% of the mixed minibatch
@@ -147,6 +139,6 @@ def test_checkpoints_from_before_adaptive_steps_still_resume(tmp_path):
     torch.save(ckpt, path)
     Trainer(load_config(TINY, ["run.total_frames=384"]), tmp_path / "run").train()
     assert len(_rows(tmp_path / "run")) == 3
-    Trainer(load_config(TINY, [f"run.init_from={path}"]), tmp_path / "child")._lock.release()
+    Trainer(load_config(TINY, [f"run.init_from={path}"]), tmp_path / "child").life.lock.release()
     with pytest.raises(CheckpointError, match="adaptive_steps"):
         Trainer(load_config(TINY, ["model.flow.adaptive_steps=[1,2]", "run.total_frames=512"]), tmp_path / "run")

@@ -103,18 +103,18 @@ def test_buffer_keeps_masked_sequences_fifo():
     assert len(buf) == 2
     assert buf.add(seqs_with_ids([4, 5]), torch.ones(2, 4, dtype=torch.bool)) == 2
     assert len(buf) == 3  # capacity: the oldest (0) went
-    ids = buf._ordered()["id"][:, 0].tolist()
+    ids = buf.ordered()["id"][:, 0].tolist()
     assert ids == [2, 4, 5]
     s = buf.sample(2)
     assert s.batch_size == (2, 4) and s["id"][:, 0].unique().numel() == 2  # without replacement
     assert set(s["id"][:, 0].tolist()) <= {2, 4, 5}
     assert s[REPLAY_MASK_KEY].dtype == torch.bool and s[REPLAY_MASK_KEY].shape == (2, 4)
     assert buf.sample(7).batch_size == (7, 4)  # more than stored: with replacement
-    stored_mask = {int(i): m for i, m in zip(buf._ordered()["id"][:, 0], buf._ordered()[REPLAY_MASK_KEY])}
+    stored_mask = {int(i): m for i, m in zip(buf.ordered()["id"][:, 0], buf.ordered()[REPLAY_MASK_KEY])}
     assert stored_mask[2].all()
     # a batch larger than the capacity keeps its newest sequences
     buf.add(seqs_with_ids([10, 11, 12, 13, 14]), torch.ones(5, 4, dtype=torch.bool))
-    assert buf._ordered()["id"][:, 0].tolist() == [12, 13, 14]
+    assert buf.ordered()["id"][:, 0].tolist() == [12, 13, 14]
 
 
 def test_buffer_refuses_foreign_batches():
@@ -141,13 +141,13 @@ def test_buffer_state_dict_round_trip(tmp_path):
     back = SuccessBuffer(3)
     back.load_state_dict(state)
     assert len(back) == 3
-    assert (back._ordered() == buf._ordered()).all()
+    assert (back.ordered() == buf.ordered()).all()
     # FIFO continues where it stopped
     back.add(seqs_with_ids([9]), torch.ones(1, 4, dtype=torch.bool))
-    assert back._ordered()["id"][:, 0].tolist() == [4, 5, 9]
+    assert back.ordered()["id"][:, 0].tolist() == [4, 5, 9]
     small = SuccessBuffer(2)
     small.load_state_dict(state)
-    assert small._ordered()["id"][:, 0].tolist() == [4, 5]
+    assert small.ordered()["id"][:, 0].tolist() == [4, 5]
     empty = SuccessBuffer(2)
     empty.load_state_dict(SuccessBuffer(2).state_dict())
     assert len(empty) == 0
@@ -364,9 +364,7 @@ def test_mixed_minibatch_on_the_tiny_freamer(tmp_path):
     cfg = load_config(TINY, ["run.total_frames=128"])
     trainer = Trainer(cfg, tmp_path / "run", resume=False)
     modules, L = trainer.modules, cfg.ppo.sequence_length
-    collector = trainer._make_collector(128)
-    data = trainer._compute_advantage(next(iter(collector)))
-    collector.shutdown()
+    data = trainer.compute_advantage(trainer.collect_batch())
     mask = success_step_mask(data, env_registry.get_adapter(cfg.env.adapter).success)
     assert mask.shape == data.shape
     forced = mask.clone()

@@ -184,12 +184,21 @@ def test_compile_or_eager_falls_back_loudly(monkeypatch, caplog):
 
 
 def test_compile_or_eager_keeps_bad_input_errors(monkeypatch):
-    monkeypatch.setattr(torch, "compile", lambda fn, **kw: fn)
+    compiled_calls = []
+
+    def counting_compile(fn, **kw):
+        def run(*a, **k):
+            compiled_calls.append(1)
+            return fn(*a, **k)
+        return run
+
+    monkeypatch.setattr(torch, "compile", counting_compile)
     f = CompileOrEager(lambda x: x.reshape(3), "reshaper")
     with pytest.raises(RuntimeError, match="shape"):
         f(torch.ones(4))
-    assert f.fallbacks == 0 and not f._failed  # the input's error, not the compiler's: compiling stays on
+    assert f.fallbacks == 0  # the input's error, not the compiler's
     assert torch.equal(f(torch.ones(3)), torch.ones(3))
+    assert len(compiled_calls) == 2  # the next call still ran the compiled function: compiling stays on
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -284,10 +284,10 @@ def test_second_run_on_a_locked_dir_is_refused(tmp_path, capsys):
         assert cli.main(["train", str(TINY), "--run-dir", str(run)]) == 2
         assert f"pid {holder.pid}" in _one_line(capsys.readouterr().err)
         from freamer_rl.health.config import load_health_config
-        from freamer_rl.health.trainer import run_health
+        from freamer_rl.trainers.health import train as train_health
 
         with pytest.raises(FreamerError, match="in use by another run"):
-            run_health(load_health_config(None, ["run.progress_bar=false"]), run)
+            train_health(load_health_config(None, ["logging.progress_bar=false"]), run)
         assert not (run / "checkpoints").exists() and not (run / "config.yaml").exists()
     finally:
         holder.kill()  # kill -9 releases the lock: no stale lock after a crash

@@ -289,6 +289,6 @@ def test_recon_norm_weights_small_scale_features():
     hr_norm = wm.recon_target("hr_features", seq["hr_features"]).pow(2).sum(-1).mean()
     imu_norm = wm.recon_target("imu", seq["imu"]).pow(2).sum(-1).mean()
     assert hr_norm / imu_norm > 0.3  # per feature both ~1: 3 vs 6 features
-    from freamer_rl.world_model.rssm import symlog
+    from freamer_rl.world_model.functional import symlog
 
     assert symlog(seq["hr_features"]).pow(2).sum(-1).mean() / symlog(seq["imu"]).pow(2).sum(-1).mean() < 1e-3

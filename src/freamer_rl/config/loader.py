@@ -222,7 +222,7 @@ def _refuse_renamed(data: dict, renamed: dict[str, str]) -> None:
                 break
             node = node[part]
         else:
-            raise ConfigError(f"{old}: this key was renamed; use {new} (e.g. {new}={node!r})")
+            raise ConfigError(f"{old}: this key was renamed; use {new} (e.g. {new}={node})")
 
 
 def config_to_dict(cfg: Any) -> dict:

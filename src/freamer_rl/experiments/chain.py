@@ -17,24 +17,30 @@ weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its `
 last checkpoint) is read back, an interrupted one resumes from its checkpoint. ``chain_summary.json`` /
 ``chain_summary.md`` list every stage with the frames counted across the chain (a curriculum's earlier stages count
 towards its budget).
+
+Overrides on the command line follow one rule: a key that is a chain-file field (``name``, ``seed``, ``output_dir``,
+``overrides``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to every stage,
+after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
+every stage for a smoke test). ``run.seed`` is always the chain's ``seed``.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
 from freamer_rl.errors import ConfigError
+from freamer_rl.experiments.folders import prepare_output_folder
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ChainConfig", "StageConfig", "load_chain", "run_chain"]
+__all__ = ["CHAIN_KEYS", "ChainConfig", "StageConfig", "load_chain", "run_chain", "split_overrides"]
 
 
 @dataclass
@@ -98,23 +104,38 @@ def _finished(run_dir: Path) -> dict | None:
     return json.loads(summary.read_text())
 
 
+CHAIN_KEYS = frozenset(f.name for f in fields(ChainConfig))
+
+
+def split_overrides(overrides: list[str] | None) -> tuple[list[str], list[str]]:
+    """``(chain's, stages')``: an override whose first key is a chain-file field (``seed=1``, ``output_dir=...``)
+    edits the chain file; any other (``run.total_frames=2048``) goes to every stage, after the stage's own."""
+    chain, stages = [], []
+    for item in overrides or []:
+        (chain if item.split("=", 1)[0].split(".", 1)[0].strip() in CHAIN_KEYS else stages).append(item)
+    return chain, stages
+
+
 def run_chain(
     path: str | Path, overrides: list[str] | None = None, *, stage_overrides: list[str] | None = None
 ) -> list[dict[str, Any]]:
     """Train every stage in order (resumable); returns one row per stage and writes the chain summary.
 
-    ``overrides`` edit the chain file (``seed=1``); ``stage_overrides`` go to every stage after its own (e.g. a
-    smoke test's sizes)."""
+    ``overrides`` are split by :func:`split_overrides`: chain-file fields (``seed=1``) edit the chain file, the
+    others (``run.total_frames=2048``) go to every stage after its own, as ``stage_overrides`` do. The output folder
+    is created and checked before the first stage trains."""
     path = Path(path)
+    overrides, given_to_stages = split_overrides(overrides)
+    stage_overrides = [*given_to_stages, *(stage_overrides or [])]
     cfg = load_chain(path, overrides)
-    root = Path(cfg.output_dir) / f"{cfg.name}-s{cfg.seed}"
+    root = prepare_output_folder(Path(cfg.output_dir) / f"{cfg.name}-s{cfg.seed}", "output_dir")
     rows: list[dict[str, Any]] = []
     previous: Path | None = None
     total = 0
     for i, stage in enumerate(cfg.stages):
         recipe = _stage_recipe(path, stage, i)
         run_dir = root / stage.name
-        given = [*cfg.overrides, *stage.overrides, *(stage_overrides or []), f"run.seed={cfg.seed}"]
+        given = [*cfg.overrides, *stage.overrides, *stage_overrides, f"run.seed={cfg.seed}"]
         if previous is not None:
             given.append(f"run.init_from={previous}")
         summary = _finished(run_dir)

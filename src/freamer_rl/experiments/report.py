@@ -4,7 +4,9 @@ Each run folder holds what its trainer wrote (``progress.csv``, ``summary.json``
 ``done.json`` (written when the trainer returned; its ``total_frames`` is the budget it was trained for) and
 ``failed.txt`` (the error line of the last failed attempt). :func:`write_report` turns them into ``runs.csv``,
 ``summary.csv`` / ``summary.md``, ``curves.csv`` and ``curve_<env>_<metric>.png`` (mean across seeds with a min-max
-band). :func:`first_reaching`, :func:`mean_std` and :func:`plot_bands` are shared with ``benchmarks/harness.py``.
+band). Runs whose ``summary.json`` holds the health trainer's evaluation (:data:`HEALTH_METRICS`) add the paper's
+Table 15 to ``summary.md``: per label, mean +- sample std across seeds. :func:`first_reaching`, :func:`mean_std` and
+:func:`plot_bands` are shared with ``benchmarks/curriculum_benchmark.py``.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from freamer_rl.run.rundir import write_rows_csv
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "DONE_NAME", "FAILED_NAME", "PLOT_METRICS", "RunRecord", "failed_line", "first_reaching", "mean_std",
+    "DONE_NAME", "FAILED_NAME", "HEALTH_METRICS", "PLOT_METRICS", "RunRecord", "failed_line", "first_reaching", "mean_std",
     "plot_bands", "read_run", "run_status", "write_report",
 ]
 
@@ -40,9 +42,16 @@ FINAL_METRICS = (
     ("return_mean", "final_return_mean", "return_mean"),
     ("crafter_score", "crafter_score", "crafter_score"),
 )
+#: the health trainer's summary.json metrics (paper Table 15): (key, column, digits); ``params_encoder`` beside them
+HEALTH_METRICS = (
+    ("eval_return_mean", "Reward", 1),
+    ("eval_violations_mean", "Violations", 2),
+    ("recon_mse", "MSE", 3),
+    ("imagination_horizon", "Horizon", 1),
+)
 
 
-# -- shared with benchmarks/harness.py ---------------------------------------------------------------------------------
+# -- shared with benchmarks/curriculum_benchmark.py -----------------------------------------------------------------------------
 def _missing(v: Any) -> bool:
     return v is None or (isinstance(v, float) and math.isnan(v))
 
@@ -201,6 +210,8 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
     out["fps"] = None if _missing(fps) else round(float(fps), 1)
     out["wall_time_s"] = None if _missing(wall) else round(float(wall), 1)
     out["episodes"] = None if _missing(out["episodes"]) else int(out["episodes"])
+    for key in (*(k for k, _, _ in HEALTH_METRICS), "params_encoder"):
+        out[key] = None if _missing(summary.get(key)) else summary[key]
     out.update(error=error, run_dir=str(rec.run_dir), env_dir=rec.env_dir, rows=rows)
     return out
 
@@ -241,6 +252,10 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
         row["crafter_score_per_seed"] = " / ".join("—" if _missing(r.get("crafter_score")) else
                                                    f"{r['crafter_score']:.2f}" for r in done)  # fmt: skip
+        for key in (*(k for k, _, _ in HEALTH_METRICS), "params_encoder"):
+            vals = [float(r[key]) for r in done if not _missing(r.get(key))]
+            row[f"{key}_mean"] = statistics.mean(vals) if vals else None
+            row[f"{key}_std"] = statistics.stdev(vals) if len(vals) > 1 else (0.0 if vals else None)
         for key in ("frames_to_95", "episodes_to_95"):
             reached = [r[key] for r in done if r.get(key) is not None]
             row[f"{key}_mean"] = statistics.mean(reached) if reached else None
@@ -267,6 +282,33 @@ def _to95(row: dict, key: str) -> str:
     return f"{head} [{row[f'{key}_per_seed']}]"
 
 
+def health_markdown(rows: list[dict]) -> list[str]:
+    """The Table 15 section of summary.md (``[]`` when no run has the health evaluation): per label x env, each
+    :data:`HEALTH_METRICS` value as mean +- sample std across the seeds done, the encoder's parameters, and the
+    reward difference to the first such label."""
+    rows = [r for r in rows if r["eval_return_mean_mean"] is not None]
+    if not rows:
+        return []
+    first = rows[0]
+    head = ["label", "seeds done", *(col for _, col, _ in HEALTH_METRICS), "params (encoder)",
+            f"reward vs {first['label']}"]  # fmt: skip
+    lines = ["", "## Health world model (paper Table 15)", "",
+             "Reward: real-env evaluation return per episode; Violations: steps with HR > 160 bpm per episode; MSE: "
+             "reconstruction MSE per feature (raw units, held-out episodes); Horizon: open-loop imagined steps before "
+             "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done.", "",
+             "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]  # fmt: skip
+    for r in rows:
+        cells = [r["label"], str(r["seeds_done"])]
+        cells += [f"{r[f'{k}_mean']:.{d}f} +- {r[f'{k}_std']:.{d}f}" if r[f"{k}_mean"] is not None else ""
+                  for k, _, d in HEALTH_METRICS]  # fmt: skip
+        params = r["params_encoder_mean"]
+        cells.append("" if params is None else f"{params:,.0f}")
+        delta = r["eval_return_mean_mean"] - first["eval_return_mean_mean"]
+        cells.append("" if r is first else f"{delta:+.1f}")
+        lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
 def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     has_crafter = any(r["crafter_score_mean"] is not None for r in rows)
     # envs without a notion of success (Crafter, CartPole): no success or to-95% columns
@@ -288,6 +330,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [_to95(r, "episodes_to_95"), _to95(r, "frames_to_95")] if has_success else []
         cells += [_cell(r, "fps", 0)]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += health_markdown(rows)
     failed = [r for r in results if r["status"] == "failed"]
     if failed:
         lines += ["", "## Failed runs", ""]
@@ -327,7 +370,9 @@ def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict
     rows (with each run's ``rows``)."""
     output.mkdir(parents=True, exist_ok=True)
     results = [read_run(rec) for rec in records]
-    write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS)
+    health = [k for k, _, _ in HEALTH_METRICS if any(r.get(k) is not None for r in results)]
+    health += ["params_encoder"] if health else []
+    write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS[:-2] + health + RUN_FIELDS[-2:])
     rows = summary_rows(results)
     write_rows_csv(output / "summary.csv", rows)
     atomic_write_text(output / "summary.md", summary_markdown(name, rows, results))

@@ -24,10 +24,15 @@ run is recorded (``failed.txt``, a ``failed`` row) and the others go on. The rep
 
 from __future__ import annotations
 
+import ctypes
 import json
 import logging
 import multiprocessing as mp
+import os
 import re
+import signal
+import sys
+import threading
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -38,9 +43,11 @@ from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.run.checkpoint import atomic_write_text
-from freamer_rl.run.rundir import Terminated, catch_sigterm, restore_sigterm
-from freamer_rl.trainers.registry import get_trainer, load_recipe
+from freamer_rl.experiments.folders import prepare_output_folder
+from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, failed_line, run_status, write_report
+from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
+from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
 
@@ -195,10 +202,34 @@ def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
 
 
 # -- workers ---------------------------------------------------------------------------------------------------------
-def _init_worker() -> None:
+_PR_SET_PDEATHSIG = 1  # linux/prctl.h
+_ORPHAN_GRACE_S = 60.0  # an orphaned worker's time to checkpoint after SIGTERM before it exits regardless
+
+
+def _watch_parent(parent: int) -> None:
+    """Watchdog thread of a worker: once the suite process is gone (the worker was re-parented), SIGTERM itself (the
+    trainer checkpoints and stops, releasing its run lock), then exit after a grace period in any case."""
+    while os.getppid() == parent:
+        time.sleep(1.0)
+    os.kill(os.getpid(), signal.SIGTERM)
+    time.sleep(_ORPHAN_GRACE_S)
+    os._exit(143)
+
+
+def _init_worker(parent: int) -> None:
+    """Worker start: one torch thread; die with the suite process, even when it is killed with ``kill -9`` (a worker
+    left training would hold its run lock, so a rerun would be refused): the kernel sends SIGTERM when the parent dies
+    (Linux ``prctl(PR_SET_PDEATHSIG)``), and a parent-pid watchdog thread covers other systems and a parent that died
+    before the ``prctl``."""
     import torch
 
     torch.set_num_threads(1)
+    if sys.platform.startswith("linux"):
+        try:
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
+        except (OSError, AttributeError) as err:  # no prctl: the watchdog alone
+            logger.debug("prctl(PR_SET_PDEATHSIG) unavailable: %s", err)
+    threading.Thread(target=_watch_parent, args=(parent,), name="suite-parent-watchdog", daemon=True).start()
 
 
 def _error_line(err: BaseException) -> str:
@@ -243,31 +274,35 @@ def _outcome(future: Any, run: SuiteRun) -> dict[str, Any]:
         return {"ok": False, "error": error, "seconds": 0.0}
 
 
-def _log_finished(suite: str, i: int, n: int, run: SuiteRun, out: dict[str, Any]) -> None:
+def _finished_note(run: SuiteRun, out: dict[str, Any]) -> str:
     if not out["ok"]:
-        logger.warning("suite %s [%d/%d] %s FAILED: %s", suite, i, n, _tag(run), out["error"])
-        return
+        return f"{_tag(run)} FAILED: {out['error']}"
     s = out["summary"]
     success = s.get("final_success_rate")
-    logger.info("suite %s [%d/%d] %s done in %.0f s: %s frames%s", suite, i, n, _tag(run), out["seconds"],
-                f"{s.get('frames', 0):,}", "" if success is None else f", success {success:.3f}")
+    return (f"{_tag(run)} done in {out['seconds']:.0f} s: {s.get('frames', 0):,} frames"
+            + ("" if success is None else f", success {success:.3f}"))  # fmt: skip
 
 
-def _execute(suite: str, todo: list[SuiteRun], jobs: int) -> list[SuiteRun]:
-    """Train ``todo`` ``jobs`` at a time in spawned workers; returns the runs that finished without error."""
+def _execute(suite: str, todo: list[SuiteRun], jobs: int, remaining: list[int | None]) -> list[SuiteRun]:
+    """Train ``todo`` ``jobs`` at a time in spawned workers (``remaining[i]``: the frames run ``i`` has left to train,
+    None when unknown, for the overall progress); returns the runs that finished without error."""
     level = logging.getLogger("freamer_rl").getEffectiveLevel()
     finished: list[SuiteRun] = []
     token = catch_sigterm()
     pool = ProcessPoolExecutor(max_workers=max(1, min(jobs, len(todo))), mp_context=mp.get_context("spawn"),
-                               initializer=_init_worker)  # fmt: skip
+                               initializer=_init_worker, initargs=(os.getpid(),))  # fmt: skip
+    progress = OverallProgress(f"suite {suite}", remaining, item="runs")
     try:
         futures = {pool.submit(_train_run, {"recipe": str(r.recipe), "overrides": r.overrides, "tag": _tag(r),
                                             "run_dir": str(r.run_dir), "target_frames": r.target_frames,
-                                            "log_level": level}): r for r in todo}  # fmt: skip
-        for i, future in enumerate(as_completed(futures), 1):
-            run = futures[future]
+                                            "log_level": level}): i for i, r in enumerate(todo)}  # fmt: skip
+        for future in as_completed(futures):
+            index = futures[future]
+            run = todo[index]
             out = _outcome(future, run)
-            _log_finished(suite, i, len(todo), run, out)
+            if not out["ok"]:
+                progress.warn(f"suite {suite}: {_finished_note(run, out)}")
+            progress.advance(index, _finished_note(run, out))
             if out["ok"]:
                 finished.append(run)
     except KeyboardInterrupt as err:
@@ -276,9 +311,40 @@ def _execute(suite: str, todo: list[SuiteRun], jobs: int) -> list[SuiteRun]:
                 process.terminate()
         raise
     finally:  # every exit, an unexpected error included, stops the workers
+        progress.close()
         restore_sigterm(token)
         pool.shutdown(wait=True, cancel_futures=True)
     return finished
+
+
+def _lock_results(root: Path, field: str) -> RunDirLock:
+    """The results folder's lock, held for the whole suite: a second suite on the same folder is refused naming the
+    holder (the lock file is :class:`~freamer_rl.run.rundir.RunDirLock`'s)."""
+    lock = RunDirLock(root)
+    try:
+        return lock.acquire()
+    except FreamerError as err:
+        found = re.search(r"\((pid .*|holder unknown.*)\); wait", str(err))
+        holder = found.group(1) if found else str(err)
+        raise FreamerError(f"{field}: the results folder {root} is in use by another suite ({holder}); wait for it "
+                           "to finish or give another --output") from None  # fmt: skip
+
+
+def _train_missing(suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: int) -> list[SuiteRun]:
+    """Train every run not done yet; returns those trained to the end."""
+    states = describe(runs)
+    pending = [(r, s) for r, s in zip(runs, states) if s["status"] != "done" and not r.error]
+    counts = {k: sum(s["status"] == k for s in states) for k in ("done", "partial", "new", "failed")}
+    logger.info("suite %s: %d runs (%s) -> %s; training %d, %d at a time", suite.name, len(runs),
+                ", ".join(f"{v} {k}" for k, v in counts.items() if v), root, len(pending), jobs)  # fmt: skip
+    for run in runs:
+        if run.error:
+            logger.warning("suite %s: %s cannot start: %s", suite.name, _tag(run), run.error)
+    if not pending:
+        return []
+    remaining = [None if r.target_frames is None else max(r.target_frames - int(s["frames"] or 0), 1)
+                 for r, s in pending]  # fmt: skip
+    return _execute(suite.name, [r for r, _ in pending], jobs, remaining)
 
 
 def run_suite(path: str | Path, *, jobs: int = 1, output: str | Path | None = None,
@@ -290,19 +356,11 @@ def run_suite(path: str | Path, *, jobs: int = 1, output: str | Path | None = No
     if jobs < 1:
         raise ConfigError(f"--jobs: expected at least 1, got {jobs}")
     suite, root, runs = plan_suite(path, output)
-    trained: list[SuiteRun] = []
-    if not report_only:
-        states = describe(runs)
-        todo = [r for r, s in zip(runs, states) if s["status"] != "done" and not r.error]
-        counts = {k: sum(s["status"] == k for s in states) for k in ("done", "partial", "new", "failed")}
-        logger.info("suite %s: %d runs (%s) -> %s; training %d, %d at a time", suite.name, len(runs),
-                    ", ".join(f"{v} {k}" for k, v in counts.items() if v), root, len(todo), jobs)  # fmt: skip
-        for run in runs:
-            if run.error:
-                logger.warning("suite %s: %s cannot start: %s", suite.name, _tag(run), run.error)
-        if todo:
-            trained = _execute(suite.name, todo, jobs)
-    results = write_report(root, suite.name, list(runs))
+    field_name = "--output" if output is not None else "output"
+    prepare_output_folder(root, field_name)  # before anything trains
+    with _lock_results(root, field_name):
+        trained = [] if report_only else _train_missing(suite, root, runs, jobs)
+        results = write_report(root, suite.name, list(runs))
     rows = [{k: v for k, v in r.items() if k != "rows"} for r in results]
     return {"output": root, "runs": rows, "trained": [_tag(r) for r in trained],
             "failed": [f"{r['label']}/{r['env']}/seed{r['seed']}" for r in rows if r["status"] == "failed"]}

@@ -33,7 +33,8 @@ from freamer_rl.health.config import (
 from freamer_rl.health.config import explore_probs as _explore_probs
 from freamer_rl.health.encoders import HealthEncoder, make_health_encoder
 from freamer_rl.layers.tdmodule import KeyedModule
-from freamer_rl.world_model.rssm import WorldModel, gaussian_kl
+from freamer_rl.world_model.functional import gaussian_kl
+from freamer_rl.world_model.rssm import WorldModel
 
 __all__ = [
     "CHECKPOINT_NAME",

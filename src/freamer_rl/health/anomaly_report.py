@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from freamer_rl.run import env_registry
 from freamer_rl.health.agent import HealthAgent, env_options, load_agent, logits_net
 from freamer_rl.world_model.anomaly import DANGER_HR, DEFAULT_ACTION_NAMES, detect_anomalies, plot_anomaly_timeline
-from freamer_rl.world_model.rssm import gaussian_kl
+from freamer_rl.world_model.functional import gaussian_kl
 
 __all__ = ["record_episode", "anomaly_report"]
 

@@ -4,8 +4,8 @@
     freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
 
 ``anomaly`` runs :func:`~freamer_rl.health.anomaly_report.anomaly_report` (Fig. 4 picture, default output: the run
-directory). ``train`` is an alias of ``freamer-rl train`` for health recipes (:func:`~freamer_rl.health.trainer.
-run_health`, resumable) and prints the summary as JSON.
+directory). ``train`` is an alias of ``freamer-rl train`` for health recipes (the registry entry
+:func:`freamer_rl.trainers.health.train`, resumable) and prints the summary as JSON.
 :func:`main` takes ``argv`` so that ``freamer-rl health ...`` can delegate to it.
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 from freamer_rl.config.loader import load_config
 from freamer_rl.health.anomaly_report import anomaly_report
 from freamer_rl.health.config import HealthConfig
-from freamer_rl.health.trainer import run_health
+from freamer_rl.trainers.health import train as train_health  # the registry entry (its STRUCTURAL)
 from freamer_rl.errors import FreamerError
 
 
@@ -51,7 +51,7 @@ def main(argv: list[str] | None = None, prog: str = "freamer-rl health") -> int:
             if recipe is not None and "=" in recipe and not Path(recipe).is_file():
                 recipe, overrides = None, [recipe, *overrides]  # no recipe, only overrides
             cfg = load_config(recipe, overrides, schema=HealthConfig)
-            summary = run_health(cfg, args.run_dir, resume=not args.no_resume)
+            summary = train_health(cfg, args.run_dir, resume=not args.no_resume)
         else:
             ckpt = Path(args.checkpoint)
             out = Path(args.out) if args.out else (ckpt if ckpt.is_dir() else ckpt.parent)

@@ -57,7 +57,7 @@ from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.layers.tdmodule import KeyedModule
 from freamer_rl.world_model.encoder import StatelessStepMixin, StepEncoder
-from freamer_rl.world_model.rssm import mlp, symlog
+from freamer_rl.world_model.functional import mlp, symlog
 
 logger = logging.getLogger(__name__)
 

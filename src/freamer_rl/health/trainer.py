@@ -1,14 +1,16 @@
 """Health-domain training run: real-env collection -> RSSM world model -> imagination PPO, repeated, then real-env
 evaluation (paper Section 5, Appendix J). ``freamer-rl train recipes/health/health_mlp.yaml``.
 
-One :class:`HealthTrainer` owns one run directory (the same layout as a MiniGrid run)::
+One :class:`HealthTrainer` owns one run directory through the lifecycle every trainer shares
+(:class:`~freamer_rl.run.lifecycle.RunLifecycle`: the same layout as a MiniGrid run) and collects with
+``freamer_rl.run.collection.make_collector``::
 
     <run_dir>/config.yaml           resolved config (``trainer: health`` first: a recipe again)
     <run_dir>/run_info.json         git commit, versions, command, resumed_from
     <run_dir>/progress.csv          one row per iteration (row 0: the random prefill)
-    <run_dir>/metrics/attempt_NN/   the TorchRL logger's files (``run.logger``) with the hyperparameters
+    <run_dir>/metrics/attempt_NN/   the TorchRL logger's files (``logging.backend``) with the hyperparameters
     <run_dir>/checkpoints/          the newest 3 resume checkpoints (after every iteration) + ``latest``
-    <run_dir>/learning_curve.png    training and evaluation return vs frames
+    <run_dir>/learning_curve.png    training and evaluation return vs frames (``plot_learning_curve``)
     <run_dir>/summary.json          final figures
     <run_dir>/checkpoint.pt         the final agent (world model + actor + value + config; ``load_agent``)
 
@@ -32,33 +34,31 @@ already holds checkpoints (nothing is deleted).
 
 from __future__ import annotations
 
-import json
+import functools
 import logging
 import math
-import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 from tensordict import TensorDict, TensorDictBase
-from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer, SliceSampler
 from torchrl.objectives import LossModule
 
-from freamer_rl.run.checkpoint import atomic_write_text, latest_checkpoint, read_checkpoint, resume_checkpoint
-from freamer_rl.run.checkpoint import save_checkpoint
+from freamer_rl.config.checks import run_name_problem
+from freamer_rl.config.sections import CollectorConfig, OptimConfig
 from freamer_rl.errors import ConfigError
-from freamer_rl.errors import CheckpointError
-from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, save_agent
+from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, parameter_table, save_agent
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
 from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, evaluate_agent
-from freamer_rl.run.optim import StepStats, optimizer_step
-from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
-from freamer_rl.run.files import make_metrics_logger, write_run_files
-from freamer_rl.config.checks import run_name_problem
-from freamer_rl.run.rundir import write_rows_csv
+from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
+from freamer_rl.run.collection import make_collector
+from freamer_rl.run.lifecycle import RunLifecycle
+from freamer_rl.run.metrics import LogMeans, ProgressReporter, format_duration, format_rate
+from freamer_rl.run.optim import StepStats, optimizer_step, restore_optimizer
 from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv
 from freamer_rl.world_model.metrics import seed_latents
 from freamer_rl.world_model.rssm import WorldModel
@@ -66,11 +66,14 @@ from freamer_rl.world_model.training import as_sequences
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["HealthTrainer", "run_health", "default_run_dir", "train_world_model_step", "plot_health_curve"]
+__all__ = ["HealthTrainer", "run_health", "default_run_dir", "train_world_model_step", "HEALTH_RETURNS"]
 
 TRAINER_NAME = "health"
-# sections whose change makes a checkpoint's weights not fit (or mean something else)
-_STRUCTURAL = ("env", "encoder", "world_model")
+TRAINER_LABEL = "RSSM world model + imagination PPO"
+#: the learning curve's return series: training episodes finished in each iteration, and real-env evaluation
+HEALTH_RETURNS = (("train_return", "training episodes (per iteration)"), ("eval_return_mean", "evaluation"))
+#: one local collector: the health env is one batched env in this process (make_collector's default section)
+_COLLECTOR = CollectorConfig()
 
 
 def train_world_model_step(
@@ -99,41 +102,6 @@ def train_world_model_step(
     return out
 
 
-def plot_health_curve(rows: list[dict], path: Path, title: str = "") -> None:
-    """Training-episode return and real-env evaluation return vs frames, one PNG (written atomically)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4))
-    for key, label, style in (("train_return", "training episodes", "-"), ("eval_return_mean", "evaluation", "o-")):
-        pts = [(r["frames"], r[key]) for r in rows if isinstance(r.get(key), float) and math.isfinite(r[key])]
-        if pts:
-            ax.plot(*zip(*pts), style, label=label)
-    ax.set_xlabel("frames")
-    ax.set_ylabel("episode return")
-    ax.set_title(title)
-    if ax.get_lines():
-        ax.legend(loc="lower right")
-    fig.tight_layout()
-    tmp = path.with_suffix(".tmp.png")
-    fig.savefig(tmp, dpi=100)
-    plt.close(fig)
-    os.replace(tmp, path)
-
-
-def _mean_rows(rows: list[dict[str, float]], prefix: str) -> dict[str, float]:
-    if not rows:
-        return {}
-    keys = rows[0].keys()
-    return {f"{prefix}{k}": float(np.mean([r[k] for r in rows if k in r])) for k in keys}
-
-
-def _param_count(m: torch.nn.Module) -> int:
-    return sum(p.numel() for p in m.parameters())
-
-
 def default_run_dir(cfg: HealthConfig) -> Path:
     name = cfg.run.name or f"health-{cfg.encoder.kind}-s{cfg.run.seed}-{time.strftime('%Y%m%d-%H%M%S')}"
     if problem := run_name_problem(name):
@@ -142,34 +110,41 @@ def default_run_dir(cfg: HealthConfig) -> Path:
 
 
 class HealthTrainer:
-    """Collect -> world model -> imagination PPO on the health env; ``HealthTrainer(cfg, run_dir).train()``.
+    """Collect -> world model -> imagination PPO on the health env; ``HealthTrainer(cfg, run_dir, structural=...)``
+    then ``.train()``. ``structural``: the config sections that shape the weights (the registry entry's,
+    :data:`freamer_rl.trainers.health.STRUCTURAL`). Holds the run directory's lock from construction until
+    :meth:`train` returns (see the module docstring)."""
 
-    Holds the run directory's lock from construction until :meth:`train` returns (see the module docstring).
-    """
-
-    def __init__(self, cfg: HealthConfig, run_dir: str | Path, *, resume: bool = True) -> None:
+    def __init__(self, cfg: HealthConfig, run_dir: str | Path, *, resume: bool = True,
+                 structural: Sequence[str]) -> None:  # fmt: skip
         self.cfg = cfg
         self.run_dir = Path(run_dir)
-        self._lock = RunDirLock(self.run_dir).acquire()
+        self.life = RunLifecycle(
+            self.run_dir, trainer_name=TRAINER_NAME, config=health_config_to_dict(cfg),
+            read_checkpoint=functools.partial(read_checkpoint, fmt=CHECKPOINT_FORMAT), structural=tuple(structural),
+            defaults=health_config_to_dict(HealthConfig()),
+            title=f"health ({cfg.encoder.kind} encoder) -- {TRAINER_LABEL}, seed {cfg.run.seed}",
+            curve={"returns": HEALTH_RETURNS, "return_label": "episode return"},
+        )  # fmt: skip
+        ckpt = self.life.open(resume, "delete it yourself (resume is the default: drop --no-resume to continue it)")
         try:
-            resume_from = self._find_checkpoint(resume)
-            self._build(self._frames_of(resume_from))
-            if resume_from is not None:
-                self._resume(resume_from)
+            self._build(0 if ckpt is None else int(ckpt.get("frames", 0)))
+            if ckpt is not None:
+                self._resume(ckpt)
+            self.life.write_run_files()
         except BaseException:
-            self._lock.release()
+            self.life.lock.release()
             raise
 
+    @property
+    def rows(self) -> list[dict[str, Any]]:
+        return self.life.rows
+
+    @property
+    def resumed_from(self) -> Path | None:
+        return self.life.resumed_from
+
     # -- construction -------------------------------------------------------------------------------------------------
-    def _find_checkpoint(self, resume: bool) -> Path | None:
-        return resume_checkpoint(
-            self.run_dir, resume, "delete it yourself (resume is the default: drop --no-resume to continue it)"
-        )
-
-    @staticmethod
-    def _frames_of(path: Path | None) -> int:
-        return 0 if path is None else int(read_checkpoint(path, fmt=CHECKPOINT_FORMAT).get("frames", 0))
-
     def _build(self, frames: int) -> None:
         """Everything in the order of the original single-function pipeline (same random streams when fresh)."""
         cfg = self.cfg
@@ -181,9 +156,9 @@ class HealthTrainer:
         self.policy = self.agent.policy(sample_latent=True, random_actions=True, explore_probs=cc.explore_probs)
         # a resumed run does not replay the episodes of the first attempt
         env_seed = cfg.run.seed if frames == 0 else cfg.run.seed * 10_000 + frames
-        env = make_health_env(cfg, seed=env_seed, primer=self.policy.make_tensordict_primer())
-        self.collector = Collector(env, self.policy, frames_per_batch=cc.frames_per_iter, total_frames=-1,
-                                   auto_register_policy_transforms=False)  # fmt: skip
+        env_fn = functools.partial(make_health_env, cfg, seed=env_seed, primer=self.policy.make_tensordict_primer())
+        self.collector = make_collector(_COLLECTOR, [env_fn], self.policy, frames_per_batch=cc.frames_per_iter,
+                                        total_frames=-1, devices={})  # fmt: skip
         self._batches = iter(self.collector)
         self.rb = ReplayBuffer(
             storage=LazyTensorStorage(cc.buffer_capacity),
@@ -203,17 +178,14 @@ class HealthTrainer:
         self.frames = 0
         self.iteration = 0  # loop iterations finished
         self.prefilled = False
-        self.rows: list[dict[str, Any]] = []
-        self.wall_time = 0.0
-        self.resumed_from: Path | None = None
         self._traj_offset = 0  # added to the collector's trajectory ids after a resume (they restart at 0)
 
     # -- checkpoints --------------------------------------------------------------------------------------------------
     def _payload(self) -> dict[str, Any]:
+        """The health entries of a resume checkpoint (the lifecycle adds rows, wall time, RNG and trainer)."""
         replay = self.rb[:] if len(self.rb) else None
         return {
             **self.agent.state_dict(),  # format, config, world_model, actor, value: load_agent reads these
-            "trainer": TRAINER_NAME,
             "wm_optimizer": self.wm_opt.state_dict(),
             "ppo_optimizer": self.algo.optimizer.state_dict(),
             "wm_steps": self.wm_stats.state_dict(),
@@ -222,35 +194,18 @@ class HealthTrainer:
             "frames": self.frames,
             "iteration": self.iteration,
             "prefilled": self.prefilled,
-            "rows": self.rows,
-            "wall_time": self.wall_time,
-            "torch_rng": torch.get_rng_state(),
         }
 
-    def _checkpoint(self) -> Path:
-        path = save_checkpoint(self.run_dir, self._payload())  # atomic + rotated; see freamer_rl.run.checkpoint
-        if self.rows:
-            plot_health_curve(self.rows, self.run_dir / "learning_curve.png", title=self._title())
-        return path
-
-    def _check_structure(self, saved: dict, path: Path) -> None:
-        current = health_config_to_dict(self.cfg)
-        diff = [s for s in _STRUCTURAL if saved.get(s) != current.get(s)]
-        if diff:
-            raise CheckpointError(
-                f"checkpoint {path} was written with other {', '.join(diff)} settings; resume with the same recipe "
-                "or start a new run (another run.name / --run-dir)"
-            )
-
-    def _resume(self, path: Path) -> None:
-        ckpt = read_checkpoint(path, fmt=CHECKPOINT_FORMAT)
-        try:
-            self._check_structure(ckpt["config"], path)
+    def _resume(self, ckpt: dict[str, Any]) -> None:
+        wc, ic = self.cfg.world_model, self.cfg.imagination
+        with self.life.restoring(ckpt):
             self.agent.world_model.load_state_dict(ckpt["world_model"])
             self.agent.actor.load_state_dict(ckpt["actor"])
             self.agent.value.load_state_dict(ckpt["value"])
-            self.wm_opt.load_state_dict(ckpt["wm_optimizer"])
-            self.algo.optimizer.load_state_dict(ckpt["ppo_optimizer"])
+            # Adam's moments are kept, the current recipe sets lr and eps (as every trainer's resume)
+            restore_optimizer(self.wm_opt, ckpt["wm_optimizer"], OptimConfig(lr=wc.lr, eps=wc.adam_eps), 0, 1)
+            restore_optimizer(self.algo.optimizer, ckpt["ppo_optimizer"], OptimConfig(lr=ic.lr, eps=ic.adam_eps),
+                              0, 1)  # fmt: skip
             self.wm_stats.load_state_dict(ckpt["wm_steps"])
             self.algo.step_stats.load_state_dict(ckpt["ppo_steps"])
             if ckpt["replay"] is not None:
@@ -260,34 +215,7 @@ class HealthTrainer:
                 self._traj_offset = int(replay.get(("collector", "traj_ids")).max()) + 1
             self.frames, self.iteration = int(ckpt["frames"]), int(ckpt["iteration"])
             self.prefilled = bool(ckpt["prefilled"])
-            self.rows = [dict(r) for r in ckpt["rows"]]
-            self.wall_time = float(ckpt["wall_time"])
-            torch.set_rng_state(ckpt["torch_rng"])
-        except CheckpointError:
-            raise
-        except (KeyError, TypeError, ValueError, RuntimeError) as err:  # a hand-edited, foreign or final-only file
-            detail = f"missing entry {err}" if isinstance(err, KeyError) else str(err).splitlines()[0][:200]
-            raise CheckpointError(f"health checkpoint {path} cannot be resumed from: {detail}") from err
-        self.resumed_from = path
-        logger.info("resumed from %s after iteration %d (%d frames)", path, self.iteration, self.frames)
-
-    # -- run files ----------------------------------------------------------------------------------------------------
-    def _title(self) -> str:
-        return f"health, {self.cfg.encoder.kind} encoder, seed {self.cfg.run.seed}"
-
-    def _write_run_files(self) -> None:
-        write_run_files(self.run_dir, health_config_to_dict(self.cfg), self.resumed_from)
-
-    def _make_logger(self):
-        """The TorchRL logger of this attempt (``metrics/attempt_NN``) with the resolved config as hyperparameters."""
-        return make_metrics_logger(self.run_dir, self.cfg.run.logger, health_config_to_dict(self.cfg),
-                                   option="run.logger")
-
-    def _log_row(self, metrics, row: dict[str, Any]) -> None:
-        write_rows_csv(self.run_dir / "progress.csv", self.rows)
-        for k, v in row.items():
-            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v):
-                metrics.log_scalar(k, v, step=self.frames)
+        logger.info("resumed from %s after iteration %d (%d frames)", self.resumed_from, self.iteration, self.frames)
 
     # -- the loop -----------------------------------------------------------------------------------------------------
     def _collect(self) -> dict[str, float]:
@@ -307,33 +235,40 @@ class HealthTrainer:
         wc = self.cfg.world_model
         wm = self.agent.world_model
         aux = wm.encoder.make_aux_loss(lambda_fm=wc.lambda_fm, lambda_smooth=wc.lambda_smooth)
-        hist = [train_world_model_step(wm, self._sample(), self.wm_opt, grad_clip=wc.grad_clip, stats=self.wm_stats,
-                                       aux_loss=aux) for _ in range(steps)]  # fmt: skip
-        return _mean_rows(hist, "wm_")
+        means = LogMeans()
+        for _ in range(steps):
+            means.add(train_world_model_step(wm, self._sample(), self.wm_opt, grad_clip=wc.grad_clip,
+                                             stats=self.wm_stats, aux_loss=aux))  # fmt: skip
+        return means.means("wm_")
 
     def _train_policy(self) -> dict[str, float]:
         wm = self.agent.world_model
         wm.eval()
         ic = self.cfg.imagination
-        hist = [self.algo.update(seed_latents(wm, self._sample(), ic.num_seeds)) for _ in range(ic.updates)]
-        return _mean_rows(hist, "ppo_")
+        means = LogMeans()
+        for _ in range(ic.updates):
+            means.add(self.algo.update(seed_latents(wm, self._sample(), ic.num_seeds)))
+        return means.means("ppo_")
 
-    def _prefill(self, t_start: float) -> None:
-        cc, wc = self.cfg.collect, self.cfg.world_model
-        n_prefill = math.ceil(cc.prefill_frames / cc.frames_per_iter)
-        stats = [self._collect() for _ in range(n_prefill)]
-        if n_prefill:
-            ep = [s for s in stats if s["episodes"]]
-            row: dict[str, Any] = {"iteration": 0, "frames": self.frames,
-                                   "train_episodes": sum(s["episodes"] for s in ep),
-                                   "train_return": float(np.mean([s["return"] for s in ep])) if ep else float("nan")}
-            row.update(self._train_world_model(wc.prefill_train_steps))
-            row["wall_s"] = self.wall_time + time.perf_counter() - t_start
-            self.rows.append(row)
-            logger.info("prefill: %d random frames, %d world-model steps", self.frames, wc.prefill_train_steps)
+    def _prefill_batches(self) -> int:
+        return math.ceil(self.cfg.collect.prefill_frames / self.cfg.collect.frames_per_iter)
+
+    def _prefill(self) -> dict[str, Any] | None:
+        """Random-action batches and the world model's prefill steps; their row (None without a prefill)."""
+        wc = self.cfg.world_model
+        stats = [self._collect() for _ in range(self._prefill_batches())]
         self.prefilled = True
+        if not stats:
+            return None
+        ep = [s for s in stats if s["episodes"]]
+        row: dict[str, Any] = {"iteration": 0, "frames": self.frames, "train_episodes": sum(s["episodes"] for s in ep),
+                               "train_return": float(np.mean([s["return"] for s in ep])) if ep else float("nan")}
+        row.update(self._train_world_model(wc.prefill_train_steps))
+        row["wall_s"] = self.life.wall_time
+        logger.info("prefill: %d random frames, %d world-model steps", self.frames, wc.prefill_train_steps)
+        return row
 
-    def _iterate(self, it: int, t_start: float) -> dict[str, Any]:
+    def _iterate(self, it: int) -> dict[str, Any]:
         stats = self._collect()
         row: dict[str, Any] = {"iteration": it, "frames": self.frames, "train_episodes": stats["episodes"],
                                "train_return": stats["return"], "train_violations": stats["violations"]}
@@ -344,91 +279,86 @@ class HealthTrainer:
         row["ppo_skipped_steps"] = self.algo.step_stats.skipped
         if self.cfg.eval.every and it % self.cfg.eval.every == 0 and it != self.cfg.collect.iterations:
             row.update({f"eval_{k}": v for k, v in evaluate_agent(self.agent).items()})
-        row["wall_s"] = self.wall_time + time.perf_counter() - t_start
+        row["wall_s"] = self.life.wall_time
         return row
 
     def train(self) -> dict[str, Any]:
-        """Run the remaining iterations, evaluate, write the summary; returns it. Ctrl-C / SIGTERM checkpoint the
-        last finished iteration (already written after each one) and re-raise."""
-        self._lock.acquire()  # no-op while __init__'s lock is held
-        sigterm = catch_sigterm()
+        """Run the remaining iterations, evaluate, write the summary; returns it. Ctrl-C / SIGTERM stop after a
+        warning naming the checkpoint of the last finished iteration (written after each one) and re-raise."""
         try:
-            return self._train()
+            with self.life.guard():
+                return self._train()
         finally:
-            restore_sigterm(sigterm)
             self.collector.shutdown()
-            self._lock.release()
 
     def _train(self) -> dict[str, Any]:
-        from tqdm.auto import tqdm
-
         cfg, cc = self.cfg, self.cfg.collect
-        self._write_run_files()
-        metrics = self._make_logger()
-        t_start = time.perf_counter()
+        metrics = self.life.metrics_logger(cfg.logging.backend, option="logging.backend")
+        total = (self._prefill_batches() + cc.iterations) * cc.frames_per_iter
+        progress = ProgressReporter(total, self.frames, bar=cfg.logging.progress_bar, desc=f"health[{cfg.encoder.kind}]")
         try:
             if not self.prefilled:
-                self._prefill(t_start)
-                if self.rows:
-                    self._log_row(metrics, self.rows[-1])
-                self._checkpoint_now(t_start)
-                t_start = time.perf_counter()
+                row = self._prefill()
+                if row is not None:
+                    self.life.log_row(row, metrics, self.frames)
+                self.life.checkpoint(self._payload())
             self.policy.random_actions = False
             self.policy.random_action_prob = cc.random_action_prob
-            its = range(self.iteration + 1, cc.iterations + 1)
-            pbar = tqdm(its, desc=f"health[{cfg.encoder.kind}]", disable=not cfg.run.progress_bar)
-            for it in pbar:
-                row = self._iterate(it, t_start)
-                self.rows.append(row)
+            for it in range(self.iteration + 1, cc.iterations + 1):
+                before = self.frames
+                row = self._iterate(it)
                 self.iteration = it
-                self._log_row(metrics, row)
-                self._checkpoint_now(t_start)  # each iteration: a crash or a kill resumes from here
-                t_start = time.perf_counter()
-                pbar.set_postfix(frames=self.frames, ret=f"{row['train_return']:.1f}",
-                                 rec=f"{row.get('wm_loss_rec', float('nan')):.2f}")  # fmt: skip
+                self.life.log_row(row, metrics, self.frames)
+                self.life.checkpoint(self._payload())  # each iteration: a crash or a kill resumes from here
+                progress.update(self.frames, self.frames - before, extra={
+                    "iteration": f"{it}/{cc.iterations}", "return": format_rate(row["train_return"], 1),
+                    "rec": format_rate(row.get("wm_loss_rec", math.nan))})  # fmt: skip
         except KeyboardInterrupt as err:
-            how = "terminated by SIGTERM" if isinstance(err, Terminated) else "interrupted"
-            logger.warning("%s after iteration %d; rerun the same command to resume from %s", how, self.iteration,
-                           latest_checkpoint(self.run_dir))  # fmt: skip
+            self.life.interrupted(err, f"after iteration {self.iteration}", latest_checkpoint(self.run_dir))
             raise
-        return self._finish(metrics, t_start)
+        finally:
+            progress.close()
+        return self._finish(metrics)
 
-    def _checkpoint_now(self, t_start: float) -> None:
-        self.wall_time += time.perf_counter() - t_start
-        self._checkpoint()
-
-    def _finish(self, metrics, t_start: float) -> dict[str, Any]:
-        final = evaluate_agent(self.agent)
+    def _finish(self, metrics: Any) -> dict[str, Any]:
+        final = {f"eval_{k}": v for k, v in evaluate_agent(self.agent).items()}
         if self.rows:
-            self.rows[-1].update({f"eval_{k}": v for k, v in final.items()})
-            self._log_row(metrics, {f"eval_{k}": v for k, v in final.items()})
-        self.wall_time += time.perf_counter() - t_start
-        self._checkpoint()
+            self.rows[-1].update(final)
+            self.life.rewrite_progress()  # the last row gained the evaluation columns
+            self.life.log_scalars(final, metrics, self.frames)
+        self.life.checkpoint(self._payload())
         save_agent(self.agent, self.run_dir, iteration=self.iteration, frames=self.frames)
-        summary = self._summary(final)
-        atomic_write_text(self.run_dir / "summary.json", json.dumps(summary, indent=2))
-        logger.info("health run finished: %s", {k: summary[k] for k in ("eval_return_mean", "recon_mse")
-                                                 if k in summary})  # fmt: skip
+        summary = self.life.write_summary(self._summary(final))
+        logger.info("health run finished: %d frames | evaluation return %s | recon_mse %s | wall time %s | run dir %s",
+                    self.frames, format_rate(summary.get("eval_return_mean")), format_rate(summary.get("recon_mse"), 4),
+                    format_duration(summary["wall_time_s"]), self.run_dir)  # fmt: skip
         return summary
 
     def _summary(self, final: dict[str, float]) -> dict[str, Any]:
-        cfg, wm = self.cfg, self.agent.world_model
+        cfg = self.cfg
+        table = {r["component"]: r["trainable"] + r["frozen"] for r in parameter_table(self.agent)}
+        encoder, rssm, actor, value = (v for k, v in table.items() if k != "Total")
+        wall = self.life.wall_time
         return {
+            "env": cfg.env.id,
+            "trainer": TRAINER_NAME,
+            "algorithm": TRAINER_LABEL,
             "encoder": cfg.encoder.kind,
             "seed": cfg.run.seed,
             "iterations": cfg.collect.iterations,
             "frames": self.frames,
-            "wall_time_s": self.wall_time,
-            **{f"eval_{k}": v for k, v in final.items() if not k.startswith(("recon", "imagination"))},
-            **{k: v for k, v in final.items() if k.startswith(("recon", "imagination"))},
+            "wall_time_s": wall,  # from the trainer's start (model build included), all attempts
+            "fps": self.frames / wall if wall > 0 else None,
+            **{k: v for k, v in final.items() if not k.startswith(("eval_recon", "eval_imagination"))},
+            **{k[5:]: v for k, v in final.items() if k.startswith(("eval_recon", "eval_imagination"))},
             "imagination_horizon_definition": {
                 "context": cfg.eval.horizon_context, "max": cfg.eval.horizon_max,
                 "reward_tol": cfg.eval.horizon_reward_tol, "windows": cfg.eval.horizon_windows,
             },  # fmt: skip
-            "params_world_model": _param_count(wm),
-            "params_encoder": _param_count(wm.encoder),
-            "params_policy": _param_count(self.agent.actor) + _param_count(self.agent.value),
-            "gates": wm.encoder.gates or None,
+            "params_world_model": encoder + rssm,
+            "params_encoder": encoder,
+            "params_policy": actor + value,
+            "gates": self.agent.world_model.encoder.gates or None,
             "wm_skipped_steps": self.wm_stats.skipped,
             "ppo_skipped_steps": self.algo.step_stats.skipped,
             "resumed_from": str(self.resumed_from) if self.resumed_from else None,
@@ -436,12 +366,14 @@ class HealthTrainer:
         }
 
 
-def run_health(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
+def run_health(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True,
+               structural: Sequence[str]) -> dict[str, Any]:  # fmt: skip
     """Train a health agent and evaluate it in the real env; returns the summary (also ``summary.json``).
 
-    ``run_dir`` default: ``<run.output_dir>/<run.name or health-<kind>-s<seed>-<time>>``. Summary keys:
+    ``run_dir`` default: ``<run.output_dir>/<run.name or health-<kind>-s<seed>-<time>>``; ``structural``: the
+    registry entry's weight-shaping sections (``freamer_rl.trainers.health.train`` passes them). Summary keys:
     ``eval_return_mean``/``_std``, ``eval_violations_mean``, ``eval_length_mean``, ``recon_mse`` (+ per key),
-    ``imagination_horizon`` (+ ``_std``), ``frames``, ``wall_time_s``, parameter counts, FM gates (foundation).
+    ``imagination_horizon`` (+ ``_std``), ``frames``, ``wall_time_s``, ``fps``, parameter counts, FM gates.
     """
     run_dir = Path(run_dir) if run_dir is not None else default_run_dir(cfg)
-    return HealthTrainer(cfg, run_dir, resume=resume).train()
+    return HealthTrainer(cfg, run_dir, resume=resume, structural=structural).train()

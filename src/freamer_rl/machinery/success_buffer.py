@@ -241,8 +241,8 @@ class SuccessBuffer:
             idx = torch.randint(self._size, (n,), device=self.device)
         return self._storage[idx]
 
-    def _ordered(self) -> TensorDictBase | None:
-        """Stored rows, oldest first."""
+    def ordered(self) -> TensorDictBase | None:
+        """The stored sequences ``[n, L]``, oldest first (``None`` when empty)."""
         if self._storage is None or self._size == 0:
             return None
         start = self._cursor if self._size == self.capacity else 0
@@ -250,7 +250,7 @@ class SuccessBuffer:
 
     def state_dict(self) -> dict:
         """Plain dicts, ints and tensors (oldest row first): ``torch.load(weights_only=True)`` reads them."""
-        rows = self._ordered()
+        rows = self.ordered()
         return {
             "capacity": self.capacity,
             "size": self._size,

@@ -39,6 +39,9 @@ class EnvAdapter:
         achievements: names of the entries of the env's ``"achievements"`` observation (bool ``[A]``, unlocked so
             far in the episode), e.g. Crafter's 22; the trainer then logs the Crafter score over all training
             episodes (:mod:`freamer_rl.run.crafter_score`). Empty: none.
+        writes: the optional entries the env can compute when a config asks for them, e.g. ``"lang_reward"``
+            (R_lang of the MiniGrid mission). A config field that asks for one the adapter does not list (see
+            :data:`freamer_rl.run.envs.ENV_WRITTEN`) is refused before the env is built. Empty: none.
     """
 
     make_env: Callable[..., Any]
@@ -46,6 +49,7 @@ class EnvAdapter:
     success: Callable[[Any], torch.Tensor] | None = None
     make_batched_env: Callable[..., Any] | None = None
     achievements: tuple[str, ...] = ()
+    writes: tuple[str, ...] = ()
 
 ENTRY_POINT_GROUP = "freamer_rl.envs"
 

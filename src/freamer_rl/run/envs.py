@@ -3,7 +3,8 @@
 One env (:func:`make_single_env`), the batched env a collector steps (:func:`make_batched_env`: ``env.num_envs``
 copies in one process plus InitTracker, StepCounter, RewardSum and the transforms a trainer hands in: its model's
 state primers, a reward-shaping transform), and the env's unbatched specs (:func:`probe_specs`) that factories build
-policies from. ``env.imports`` are imported first, so a user's own package can register its gymnasium ids.
+policies from. ``env.imports`` are imported first, so a user's own package can register its gymnasium ids; a config
+asking for an entry the adapter cannot compute (:data:`ENV_WRITTEN`, ``EnvAdapter.writes``) is refused first.
 """
 
 from __future__ import annotations
@@ -17,7 +18,36 @@ from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, St
 from freamer_rl.errors import ConfigError
 from freamer_rl.run import env_registry
 
-__all__ = ["import_env_modules", "env_options", "make_single_env", "make_batched_env", "probe_specs"]
+__all__ = ["ENV_WRITTEN", "check_env_writes", "import_env_modules", "env_options", "make_single_env",
+           "make_batched_env", "probe_specs"]
+
+#: Config fields whose non-zero value asks the env for an entry that only some adapters compute (those listing it
+#: in ``EnvAdapter.writes``): dotted field -> (entry, what it is). A field a trainer's schema lacks asks for nothing.
+ENV_WRITTEN: dict[str, tuple[str, str]] = {
+    "shaping.language.weight": ("lang_reward", "R_lang, which parses a MiniGrid mission and reads MiniGrid's grid"),
+}
+
+
+def _dotted(cfg: Any, dotted: str) -> Any:
+    node = cfg
+    for part in dotted.split("."):
+        node = getattr(node, part, None)
+    return node
+
+
+def check_env_writes(cfg: Any) -> None:
+    """One ConfigError line for a field of :data:`ENV_WRITTEN` that is on while ``env.adapter`` cannot compute its
+    entry (e.g. ``shaping.language.weight`` on Crafter, which has no mission)."""
+    adapter = env_registry.get_adapter(cfg.env.adapter)
+    for dotted, (entry, what) in ENV_WRITTEN.items():
+        value = _dotted(cfg, dotted)
+        if value and entry not in adapter.writes:
+            able = [n for n in sorted(env_registry.available_adapters())
+                    if entry in env_registry.get_adapter(n).writes]  # fmt: skip
+            raise ConfigError(
+                f"{dotted}: got {value}, but env.adapter '{cfg.env.adapter}' cannot provide {what} ('{entry}'); set "
+                f"{dotted}=0" + (f" or use env.adapter {' / '.join(able)}" if able else "")
+            )
 
 
 def import_env_modules(env: Any) -> None:
@@ -37,6 +67,7 @@ def env_options(cfg: Any) -> dict[str, Any]:
 
 def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
     import_env_modules(cfg.env)
+    check_env_writes(cfg)
     return env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
 
 
@@ -52,6 +83,7 @@ def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None
     then InitTracker, StepCounter, RewardSum and copies of ``transforms`` (after RewardSum, so episode returns stay
     the env's own)."""
     import_env_modules(cfg.env)
+    check_env_writes(cfg)
     n = num_envs or cfg.env.num_envs
     adapter = env_registry.get_adapter(cfg.env.adapter)
     if adapter.make_batched_env is not None:

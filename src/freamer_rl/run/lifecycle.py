@@ -160,22 +160,24 @@ class RunLifecycle:
                 metrics.log_scalar(k, v, step=step)
 
     def rewrite_progress(self) -> None:
-        """Replace progress.csv with the kept rows atomically (columns of the last row; empty file without rows)."""
-        write_rows_csv(self.run_dir / "progress.csv", self.rows, fields=list(self.rows[-1]) if self.rows else None)
+        """Replace progress.csv with the kept rows atomically (every column any row has, in order of appearance:
+        an evaluation every N iterations adds columns to some rows only; empty file without rows)."""
+        write_rows_csv(self.run_dir / "progress.csv", self.rows)
 
     def append_progress(self, row: dict[str, Any]) -> None:
-        """Append ``row`` (already the last kept row); rewrite the file when its columns differ."""
+        """Append ``row`` (already the last kept row) under the file's header (its missing columns left blank);
+        rewrite the file when the row brings a column the header lacks."""
         path = self.run_dir / "progress.csv"
         header: list[str] = []
         if path.exists():
             with path.open(newline="") as f:
                 header = next(csv.reader(f), [])
-        if header != list(row):
-            # new file, or other columns (a resumed run with other diagnostics, an evaluation row): rewrite
+        if not header or not set(row) <= set(header):
+            # new file, or new columns (a resumed run with other diagnostics, an evaluation row): rewrite
             self.rewrite_progress()
             return
         with run_file_errors(path), path.open("a", newline="") as f:
-            csv.DictWriter(f, fieldnames=list(row)).writerow(row)
+            csv.DictWriter(f, fieldnames=header).writerow(row)
 
     def checkpoint(self, payload: dict[str, Any]) -> Path:
         """Save ``payload`` (the trainer's entries, with ``format`` and ``frames``) plus the common entries as the

@@ -18,7 +18,7 @@ STRUCTURAL = ("env", "encoder", "world_model")
 
 
 def train(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
-    return run_health(cfg, run_dir, resume=resume)
+    return run_health(cfg, run_dir, resume=resume, structural=STRUCTURAL)
 
 
 def evaluate(path: str | Path, **options: Any) -> dict[str, Any]:

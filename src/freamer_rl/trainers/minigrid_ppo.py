@@ -257,6 +257,19 @@ class Trainer(RunLoop):
     def _extra_summary(self) -> dict[str, Any]:
         return {"gates": self.modules.gates(), **self._fallback_counts()}
 
+    # -- inspection seams (tests, benchmarks): one step of what train() does, without training -----------------
+    def collect_batch(self) -> TensorDictBase:
+        """One training batch ``[*B, T]`` (``frames_per_batch`` frames) from fresh envs under the current policy."""
+        collector = self._make_collector(self.frames_per_batch)
+        try:
+            return next(iter(collector))
+        finally:
+            collector.shutdown()
+
+    def compute_advantage(self, data: TensorDictBase) -> TensorDictBase:
+        """The values, reward shaping and GAE that a batch ``[*B, T]`` gets before the PPO epochs (in place)."""
+        return self._compute_advantage(data)
+
     @torch.no_grad()
     def _compute_advantage(self, data: TensorDictBase) -> TensorDictBase:
         """Step-mode values on the stored states (root and next), then TorchRL's GAE.

@@ -27,7 +27,8 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs.transforms import Transform
 
 from freamer_rl.world_model.encoder import StepEncoder
-from freamer_rl.world_model.rssm import WorldModel, gaussian_kl
+from freamer_rl.world_model.functional import gaussian_kl
+from freamer_rl.world_model.rssm import WorldModel
 
 logger = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """Tensor helpers of the world model: symlog/symexp, MLPs, Gaussian KL (Eq. A27), free nats, one-hot actions.
 
-Split from :mod:`.rssm` (which re-exports them). Every function accepts arbitrary leading batch dims ``[*B, ...]``.
+Every function accepts arbitrary leading batch dims ``[*B, ...]``.
 """
 
 from __future__ import annotations

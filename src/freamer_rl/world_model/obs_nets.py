@@ -1,5 +1,5 @@
 """Default observation encoder and decoder of :class:`~freamer_rl.world_model.rssm.WorldModel` (MLPs on the
-concatenated observation keys). Split from :mod:`.rssm` (which re-exports them)."""
+concatenated observation keys)."""
 
 from __future__ import annotations
 

@@ -43,24 +43,14 @@ from torch import nn
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import LossModule
 
-from freamer_rl.world_model.functional import (  # noqa: F401  (re-exported: the public names stay importable here)
+from freamer_rl.world_model.functional import (
     _check_last_dim, _flat, action_to_onehot, free_nats_kl, gaussian_kl, mlp, symexp, symlog,
 )
 from freamer_rl.world_model.obs_nets import MLPObsDecoder, MLPObsEncoder
 
 logger = logging.getLogger(__name__)
 
-__all__ = [
-    "RSSM",
-    "WorldModel",
-    "MLPObsEncoder",
-    "MLPObsDecoder",
-    "gaussian_kl",
-    "free_nats_kl",
-    "symlog",
-    "symexp",
-    "action_to_onehot",
-]
+__all__ = ["RSSM", "WorldModel"]
 
 
 # ----------------------------------------------------------------------------------------------------------------------

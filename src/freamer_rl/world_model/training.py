@@ -1,5 +1,5 @@
 """Training the world model from a TorchRL replay buffer: :func:`as_sequences` and :func:`train_world_model`.
-Split from :mod:`.rssm` (which re-exports them)."""
+"""
 
 from __future__ import annotations
 
