@@ -2,6 +2,9 @@
 
     python benchmarks/curriculum_benchmark.py recipes/minigrid_multiroom_curriculum.chain.yaml --seeds 0 1 2
 
+A script, not a suite (``recipes/suites/``): a suite entry is one recipe, and what this measures is a chain of them
+with the frames of the earlier stages counted (the FreamerV1 rows of the hard-task results files as well).
+
 Each seed is one ``freamer-rl chain`` run (``freamer_rl.experiments.chain.run_chain``) in its own process, two at a time, one
 thread each; rerunning the command resumes unfinished chains and reads finished ones back. Success rates are the
 trainer's windowed rates (last 100 episodes). Writes ``results.md``, ``results.csv`` and ``learning_curve.png`` (the
@@ -19,8 +22,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from harness import first_reaching, mean_std, plot_bands  # noqa: E402
+from freamer_rl.experiments.report import first_reaching, mean_std, plot_bands
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -19,13 +19,11 @@ What is timed, per batch of ``ppo.frames_per_batch`` frames (one warm-up batch f
   GAE) + ``trainer._update`` (the PPO epochs). ``collector.update_policy_weights_()`` and the episode statistics are
   outside both. For commits whose adapters are the top-level package ``envs`` (before they were installed as
   ``freamer_rl_envs``), ``env_registry.get_env_factory`` is patched to return that tree's ``envs.minigrid`` factory.
-* PPO-MLP: ``ppo_mlp_baseline.train_ppo_mlp`` itself (unchanged), run for (1 + K) batches with its GAE class
-  swapped for a subclass that notes the time it is called and a ``progress`` callback that notes the end of each
-  batch; collection = end of the previous batch until GAE starts (includes the baseline's per-episode bookkeeping
-  loop), update = GAE start until the end of the batch (GAE with its value network, buffer fill, the PPO epochs,
-  ``update_policy_weights_``). Its own ``torch.set_num_threads(1)`` is overridden so it runs with ``t`` threads.
-  It always uses one env (that is the baseline), so ``env.num_envs`` does not change it; it is rerun for every
-  configuration only so that every row has a same-load baseline.
+* PPO-MLP: ``PPOBaselineTrainer`` of ``recipes/baselines/ppo_mlp_n2s4.yaml`` (``trainer: ppo_baseline``) with the
+  FreamerV1 recipe's ``env.id`` and ``ppo.frames_per_batch``, timed the same way: collection = ``next()`` on its
+  collector, update = ``trainer._learn`` (GAE with the value network, then the PPO epochs). It always uses one env
+  (that is the baseline), so ``env.num_envs`` does not change it; it is rerun for every configuration only so that
+  every row has a same-load baseline.
 
 fps = frames / time; overall = frames / (collection + update). Per round, a method's fps is over its K batches
 together; the tables give the mean and min-max over rounds, and the ratios are the mean (min-max) of the per-round
@@ -50,6 +48,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RECIPE = ROOT / "recipes" / "minigrid_multiroom_n2s4.yaml"
+BASELINE_RECIPE = ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml"
 RESULT_TAG = "THROUGHPUT_RESULT "
 METHODS = ("current", "old", "baseline")
 METRICS = ("collect_fps", "update_fps", "overall_fps")
@@ -135,35 +134,40 @@ def _time_freamer(spec: dict) -> dict:
 
 
 def _time_baseline(spec: dict) -> dict:
+    """TorchRL's PPO-MLP (``trainer: ppo_baseline``, :data:`BASELINE_RECIPE`) timed like FreamerV1: collection =
+    ``next()`` on its collector, update = ``_learn`` (GAE with the value network, then the PPO epochs)."""
     import torch
 
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import ppo_mlp_baseline as pb
-
-    # batch 0's collection starts inside train_ppo_mlp (not observable): it is never timed, even with --warmup 0
-    k, warmup, fpb = spec["batches"], max(spec["warmup"], 1), spec["frames_per_batch"]
-    gae_starts: list[float] = []
-    batch_ends: list[float] = []
-
-    class TimedGAE(pb.GAE):
-        def forward(self, *args, **kwargs):
-            gae_starts.append(time.perf_counter())
-            return super().forward(*args, **kwargs)
-
     torch.set_num_threads(spec["threads"])
-    set_threads, pb.GAE = torch.set_num_threads, TimedGAE
-    torch.set_num_threads = lambda n: None  # train_ppo_mlp pins 1 thread; keep ours
+    from freamer_rl.trainers.baselines.ppo_baseline import PPOBaselineTrainer
+    from freamer_rl.trainers.registry import load_config
+
+    k, warmup = spec["batches"], spec["warmup"]
+    cfg = load_config(BASELINE_RECIPE, spec["overrides"])
+    run_dir = Path(tempfile.mkdtemp(prefix="throughput_baseline_"))
     try:
-        pb.train_ppo_mlp(spec["env_id"], spec["seed"], (warmup + k) * fpb, frames_per_batch=fpb,
-                         progress=lambda row: batch_ends.append(time.perf_counter()))
+        trainer = PPOBaselineTrainer(cfg, run_dir / "run", resume=False)
+        torch.set_num_threads(spec["threads"])
+        collector = trainer._make_collector((warmup + k) * cfg.ppo.frames_per_batch)
+        it = iter(collector)
+        collect, update, frames = [], [], 0
+        for i in range(warmup + k):
+            t0 = time.perf_counter()
+            data = next(it)
+            t1 = time.perf_counter()
+            trainer._learn(data)
+            t2 = time.perf_counter()
+            trainer.frames += data.numel()
+            collector.update_policy_weights_()
+            if i >= warmup:
+                collect.append(t1 - t0)
+                update.append(t2 - t1)
+                frames += data.numel()
+        collector.shutdown()
     finally:
-        torch.set_num_threads = set_threads
-    if len(gae_starts) != warmup + k or len(batch_ends) != warmup + k:
-        raise RuntimeError(f"expected {warmup + k} batches, saw {len(gae_starts)} GAE calls / {len(batch_ends)} ends")
-    collect = [gae_starts[i] - batch_ends[i - 1] for i in range(warmup, warmup + k)]
-    update = [batch_ends[i] - gae_starts[i] for i in range(warmup, warmup + k)]
-    out = _fps_summary(fpb * len(collect), collect, [0.0] * len(collect), update)
-    out.update(source=str(Path(pb.__file__).resolve()), num_threads=torch.get_num_threads())
+        shutil.rmtree(run_dir, ignore_errors=True)
+    out = _fps_summary(frames, collect, [0.0] * len(collect), update)
+    out.update(source=str(BASELINE_RECIPE.relative_to(ROOT)), num_threads=torch.get_num_threads())
     return out
 
 
@@ -306,7 +310,7 @@ def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Pa
         f"Generated {meta['date']} on {meta['machine']}; load average {meta['load_start']} at the start, "
         f"{meta['load_end']} at the end.",
         f"Code: current = {meta['codes']['current']}, old = {meta['codes'].get('old', 'skipped')}, "
-        f"baseline = benchmarks/ppo_mlp_baseline.py (one env, MLP 256x2).",
+        f"baseline = recipes/baselines/ppo_mlp_n2s4.yaml (trainer: ppo_baseline, one env, MLP 256x2).",
         f"{meta['rounds']} round(s), interleaved (each round: every configuration, current / old / baseline, each in "
         f"its own subprocess); per measurement {meta['warmup']} warm-up batch(es) + {meta['batches']} timed batches of "
         f"{meta['frames_per_batch']} frames. Overrides: {meta['overrides'] or 'none'}.",
@@ -396,7 +400,7 @@ def main(argv: list[str] | None = None) -> str:
     if not configs:
         raise SystemExit("no valid configuration: " + "; ".join(notes))
     fpb, env_id = cfg.ppo.frames_per_batch, cfg.env.id  # the baseline gets the recipe's env and batch size
-    codes = {"current": _current_code(), "baseline": "ppo_mlp_baseline.py"}
+    codes = {"current": _current_code(), "baseline": "ppo_baseline"}
     tmp = Path(tempfile.mkdtemp(prefix="throughput_old_"))
     trees = {"current": ROOT, "baseline": None}
     recipe = Path(args.recipe).resolve()
@@ -421,7 +425,8 @@ def main(argv: list[str] | None = None) -> str:
                     spec = {"method": m, "threads": t, "num_envs": n, "batches": args.batches, "warmup": args.warmup,
                             "seed": args.seed}
                     if m == "baseline":
-                        spec.update(env_id=env_id, frames_per_batch=fpb)
+                        spec["overrides"] = [*fixed, f"env.id={env_id}", f"ppo.frames_per_batch={fpb}",
+                                             f"run.threads={t}", f"run.total_frames={(args.warmup + args.batches) * fpb}"]
                     else:
                         spec.update(recipe=recipes[m], tree=str(trees[m]), patch_envs=m == "old",
                                     overrides=[*fixed, *args.overrides, f"run.threads={t}", f"env.num_envs={n}",

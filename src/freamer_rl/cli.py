@@ -13,7 +13,8 @@ registry :data:`freamer_rl.trainers.registry.TRAINERS` (``freamer-rl health trai
 
 User errors (bad recipe key or type, unknown env id, a modality the env lacks, missing CLIP weights, a checkpoint
 from another config or one that is not plain tensors and data, a run directory in use by another run, ``--no-resume``
-on a run that has checkpoints) print one ``error:`` line and exit with status 2; ``--debug`` shows the traceback.
+on a run that has checkpoints, an output folder that cannot be written, a size too large to allocate) print one
+``error:`` line and exit with status 2; ``--debug`` shows the traceback.
 Ctrl-C exits with 130 and SIGTERM with 143, both after writing a checkpoint; rerunning the same command resumes
 (also after ``kill -9``: from the last periodic checkpoint).
 """
@@ -147,6 +148,25 @@ def _suite(args: argparse.Namespace) -> int:
     return 0
 
 
+#: how torch reports a failed allocation (CPU: "[enforce fail at alloc_cpu.cpp] ... DefaultCPUAllocator: not enough
+#: memory"; CUDA: "CUDA out of memory")
+_ALLOCATION_FAILURES = ("not enough memory", "[enforce fail", "out of memory", "defaultcpuallocator",
+                        "cannot allocate memory")
+
+
+def allocation_failure(err: BaseException) -> str | None:
+    """The one ``error:`` line for an allocation that failed (a size in the recipe too large for the machine), or
+    None when ``err`` is something else."""
+    text = " ".join(str(err).split())
+    if not isinstance(err, MemoryError) and not (isinstance(err, RuntimeError)
+                                                 and any(p in text.lower() for p in _ALLOCATION_FAILURES)):
+        return None
+    shown = text if len(text) <= 160 else text[:157] + "..."
+    return (f"out of memory ({type(err).__name__}: {shown or 'no details'}): a size in the recipe is too large for "
+            "this machine (e.g. model.embed_dim, model.head_hidden, network.hidden, a batch, sequence or buffer "
+            "size); lower it (--debug shows where it was allocated)")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = _parser()
     args, unknown = parser.parse_known_args(argv)
@@ -164,6 +184,12 @@ def main(argv: list[str] | None = None) -> int:
         if args.debug:
             raise
         sys.stderr.write(f"error: {err}\n")
+        return 2
+    except (MemoryError, RuntimeError) as err:
+        line = allocation_failure(err)
+        if line is None or args.debug:
+            raise
+        sys.stderr.write(f"error: {line}\n")
         return 2
     except KeyboardInterrupt as err:
         if isinstance(err, Terminated):  # SIGTERM: the trainer checkpointed like on Ctrl-C; 128 + 15 as a shell would

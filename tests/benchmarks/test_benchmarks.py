@@ -1,76 +1,143 @@
-"""Smoke tests of the benchmark harness (tiny budgets; the real figures come from the benchmark commands)."""
+"""The benchmarks: every shipped suite (recipes/suites/) plans, the suites' PPO-MLP recipes stand beside the FreamerV1
+runs they are compared with, the suite report's health table, and the curriculum script (tiny budgets; the real
+figures come from the benchmark commands)."""
 
+import json
+import os
+import shutil
+import statistics
 import sys
 from pathlib import Path
 
-from torchrl.data import Categorical
+import pytest
+
+from freamer_rl.experiments.report import RunRecord, write_report
+from freamer_rl.experiments.suite import describe, load_suite, plan_suite, run_suite
+from freamer_rl.trainers.registry import load_recipe
 
 ROOT = Path(__file__).resolve().parents[2]
+SUITES = sorted((ROOT / "recipes" / "suites").glob("*.yaml"))
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
-import minigrid_benchmark  # noqa: E402
-from ppo_mlp_baseline import make_flat_env  # noqa: E402
+
+@pytest.mark.parametrize("path", SUITES, ids=[p.stem for p in SUITES])
+def test_every_shipped_suite_plans(path, tmp_path):
+    """What ``freamer-rl suite <file> --dry-run`` checks: every run's config loads (trainer, overrides, env id)."""
+    suite, root, runs = plan_suite(path, tmp_path / "out")
+    assert root == tmp_path / "out"
+    assert len(runs) == len(suite.entries) * len(suite.seeds) * max(1, len(suite.envs))
+    assert [r.error for r in runs if r.error] == []
+    assert {row["status"] for row in describe(runs)} == {"new"}
+    if suite.total_frames is not None:  # an entry's own run.total_frames override wins over the suite's
+        own = {e.label for e in suite.entries if any(o.startswith("run.total_frames=") for o in e.overrides)}
+        assert {r.target_frames for r in runs if r.label not in own} == {suite.total_frames}
 
 
-def test_baseline_env_takes_integer_actions():
-    """GymWrapper defaults to one-hot actions; an integer Categorical policy then always turns left."""
-    env = make_flat_env("MiniGrid-MultiRoom-N2-S4-v0", seed=0)
-    assert isinstance(env.action_spec, Categorical)
-    rollout = env.rollout(30)
-    assert rollout["action"].unique().numel() > 1
-    env.close()
+def test_suites_name_their_results_folder_after_themselves():
+    """Two suites never share a results folder (each defaults to results/<name>)."""
+    names = [load_suite(p).name for p in SUITES]
+    assert sorted(names) == sorted(p.stem for p in SUITES)
 
 
-def test_benchmark_harness_writes_report(tmp_path):
-    minigrid_benchmark.main(
-        ["--frames", "512", "--seeds", "0", "--workers", "1", "--out", str(tmp_path),
-         "env.num_envs=2", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1"]
-    )
-    text = (tmp_path / "results.md").read_text()
-    assert "FreamerV1" in text and "PPO-MLP" in text and "Throughput ratio" in text
-    assert (tmp_path / "learning_curves.png").is_file()
-    assert (tmp_path / "results.csv").read_text().count("\n") == 3
+@pytest.mark.parametrize("task", ["cartpole", "pendulum"])
+def test_gym_ppo_mlp_recipe_differs_from_freamer_only_in_the_network(task):
+    """The PPO-MLP of the gym suites trains with the FreamerV1 recipe's env, PPO settings, optimiser and budget."""
+    _, freamer = load_recipe(ROOT / "recipes" / "gym" / f"{task}.yaml")
+    name, mlp = load_recipe(ROOT / "recipes" / "baselines" / f"ppo_mlp_{task}.yaml")
+    assert name == "ppo_baseline" and mlp.network.kind == "mlp" and mlp.network.observation_keys == ["observation"]
+    assert (mlp.env.adapter, mlp.env.id, mlp.env.num_envs) == (freamer.env.adapter, freamer.env.id,
+                                                               freamer.env.num_envs)  # fmt: skip
+    fields = [f for f in vars(freamer.ppo) if f != "sequence_length"]  # PPO-MLP steps need no sequence layout
+    assert {f: getattr(mlp.ppo, f) for f in fields} == {f: getattr(freamer.ppo, f) for f in fields}
+    assert vars(mlp.optim) == vars(freamer.optim)
+    assert mlp.run.total_frames == freamer.run.total_frames
 
 
-def test_health_benchmark_report_and_reuse(tmp_path):
-    import health_benchmark
-
-    args = ["--quick", "--encoders", "mlp", "--seeds", "0", "--workers", "1", "--skip-throughput", "--out",
-            str(tmp_path)]  # fmt: skip
-    health_benchmark.main(args)
-    text = (tmp_path / "results.md").read_text()
-    assert "MLP (vanilla)" in text and "| Encoder | Reward | Violations | MSE | Horizon |" in text
-    first = (tmp_path / "results.csv").read_text()
-    summary = tmp_path / "runs" / "mlp_s0" / "summary.json"
-    stamp = summary.stat().st_mtime_ns
-    health_benchmark.main([*args, "--reuse"])  # same resolved config: the finished run is read back, not retrained
-    assert summary.stat().st_mtime_ns == stamp
-    assert (tmp_path / "results.csv").read_text() == first
-    health_benchmark.main([*args, "--reuse", "collect.iterations=2"])  # another config: trained again
-    assert summary.stat().st_mtime_ns != stamp
+def _suite_file(tmp_path: Path, body: str) -> Path:
+    path = tmp_path / "suite.yaml"
+    path.write_text(body.replace("RECIPES", os.path.relpath(ROOT / "recipes", tmp_path)))
+    return path
 
 
-def test_gym_benchmark_report_and_resume(tmp_path):
-    """FreamerV1 and PPO-MLP on CartPole through the shared harness; a rerun reads finished runs back."""
-    import gym_benchmark
+def test_gym_suite_trains_ppo_baseline_discrete_and_continuous(tmp_path):
+    """The gym suites' PPO-MLP (CartPole's categorical head, Pendulum's TanhNormal one) trains through
+    ``freamer-rl suite``, reports a return, and a rerun trains nothing."""
+    path = _suite_file(tmp_path, "name: gym_smoke\nseeds: [0]\ntotal_frames: 512\n"
+                       "overrides: [env.num_envs=2, ppo.frames_per_batch=256, ppo.minibatch_size=128, ppo.epochs=1]\n"
+                       "entries:\n  - {label: cartpole, recipe: RECIPES/baselines/ppo_mlp_cartpole.yaml}\n"
+                       "  - {label: pendulum, recipe: RECIPES/baselines/ppo_mlp_pendulum.yaml}\n")  # fmt: skip
+    out = run_suite(path, jobs=1, output=tmp_path / "out")
+    assert out["failed"] == [] and len(out["trained"]) == 2
+    rows = {r["label"]: r for r in out["runs"]}
+    assert {r["status"] for r in rows.values()} == {"done"}
+    for label in ("cartpole", "pendulum"):
+        summary = json.loads((Path(rows[label]["run_dir"]) / "summary.json").read_text())
+        assert summary["trainer"] == "ppo_baseline" and summary["frames"] == 512
+        assert rows[label]["return_mean"] == pytest.approx(summary["final_return_mean"])
+    text = (tmp_path / "out" / "summary.md").read_text()
+    assert "| cartpole | CartPole-v1 |" in text and "| pendulum | Pendulum-v1 |" in text
+    assert "final success" not in text  # neither env has a notion of success
+    assert (tmp_path / "out" / "curve_CartPole-v1_return_mean.png").is_file()
+    assert run_suite(path, jobs=1, output=tmp_path / "out")["trained"] == []
 
-    args = ["recipes/gym/cartpole.yaml", "--frames", "512", "--seeds", "0", "--workers", "1", "--target", "500",
-            "--out", str(tmp_path), "env.num_envs=2", "ppo.frames_per_batch=256", "ppo.minibatch_size=128",
-            "ppo.epochs=1"]  # fmt: skip
-    gym_benchmark.main(args)
-    text = (tmp_path / "results.md").read_text()
-    assert "FreamerV1" in text and "PPO-MLP" in text and "frames to return >= 500" in text
-    assert (tmp_path / "learning_curves.png").is_file()
-    job = tmp_path / "jobs" / "freamer_s0.json"
-    stamp = job.stat().st_mtime_ns
-    gym_benchmark.main(args)  # finished runs are not retrained
-    assert job.stat().st_mtime_ns == stamp
-    assert (tmp_path / "runs" / "freamer_s0" / "checkpoints" / "latest").is_file()  # resumable mid-run too
+
+def _health_run(root: Path, label: str, seed: int, values: dict) -> RunRecord:
+    run_dir = root / "runs" / label / "pamap2-health" / f"seed{seed}"
+    run_dir.mkdir(parents=True)
+    (run_dir / "summary.json").write_text(json.dumps({"frames": 1024, "episodes": 8, **values}))
+    (run_dir / "done.json").write_text(json.dumps({"total_frames": None, "frames": 1024}))
+    return RunRecord(label=label, env="pamap2-health", env_dir="pamap2-health", seed=seed, run_dir=run_dir)
+
+
+def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
+    """Table 15's columns: mean +- sample std across seeds of each summary.json metric, the encoder's parameters,
+    the reward difference to the first label."""
+    returns = {"mlp": [50.0, 60.0, 64.0], "foundation": [48.0, 52.0, 53.0]}
+    records = []
+    for label, rets in returns.items():
+        for seed, ret in enumerate(rets):
+            records.append(_health_run(tmp_path, label, seed, {
+                "eval_return_mean": ret, "eval_violations_mean": 0.5 * seed, "recon_mse": 0.25,
+                "imagination_horizon": 10.0 + seed, "params_encoder": 1234 if label == "mlp" else 5678}))
+    write_report(tmp_path, "health_demo", records)
+    text = (tmp_path / "summary.md").read_text()
+    assert "## Health world model (paper Table 15)" in text
+    table = text.split("## Health world model (paper Table 15)")[1]
+    rows = {line.split(" | ")[0].strip("| "): line for line in table.splitlines() if line.startswith("| ")}
+    mlp, foundation = returns["mlp"], returns["foundation"]
+    assert f"| mlp | 3 | {statistics.mean(mlp):.1f} +- {statistics.stdev(mlp):.1f} | 0.50 +- 0.50 | 0.250 +- 0.000 " \
+           f"| 11.0 +- 1.0 | 1,234 |  |" in rows["mlp"]
+    delta = statistics.mean(foundation) - statistics.mean(mlp)
+    assert rows["foundation"].endswith(f"| 5,678 | {delta:+.1f} |")
+    header = (tmp_path / "runs.csv").read_text().splitlines()[0].split(",")
+    assert header[-7:] == ["eval_return_mean", "eval_violations_mean", "recon_mse", "imagination_horizon",
+                           "params_encoder", "error", "run_dir"]  # fmt: skip
+
+
+def test_health_quick_suite_trains_and_tables_a_real_health_run(tmp_path):
+    """health_quick's sizes, one encoder and seed: the health trainer's summary.json feeds the Table 15 section."""
+    quick = load_suite(ROOT / "recipes" / "suites" / "health_quick.yaml")
+    path = _suite_file(tmp_path, f"name: health_smoke\nseeds: [0]\noverrides: {json.dumps(quick.overrides)}\n"
+                       "entries:\n  - {label: mlp, recipe: RECIPES/health/health_mlp.yaml}\n")  # fmt: skip
+    out = run_suite(path, jobs=1, output=tmp_path / "out")
+    assert out["failed"] == [] and out["trained"] == ["mlp/pamap2-health/seed0"]
+    summary = json.loads((Path(out["runs"][0]["run_dir"]) / "summary.json").read_text())
+    table = (tmp_path / "out" / "summary.md").read_text().split("## Health world model (paper Table 15)")[1]
+    row = next(line for line in table.splitlines() if line.startswith("| mlp |"))
+    assert f"| {summary['eval_return_mean']:.1f} +- 0.0 |" in row and f"{summary['params_encoder']:,}" in row
+
+
+def test_report_has_no_health_table_without_health_runs(tmp_path):
+    run_dir = tmp_path / "runs" / "a" / "e" / "seed0"
+    run_dir.mkdir(parents=True)
+    (run_dir / "summary.json").write_text(json.dumps({"frames": 10, "final_return_mean": 1.0}))
+    (run_dir / "done.json").write_text(json.dumps({"total_frames": 10, "frames": 10}))
+    write_report(tmp_path, "plain", [RunRecord(label="a", env="e", env_dir="e", seed=0, run_dir=run_dir)])
+    assert "Health world model" not in (tmp_path / "summary.md").read_text()
+    assert "eval_return_mean" not in (tmp_path / "runs.csv").read_text().splitlines()[0]
 
 
 def test_curriculum_benchmark_reports_chain_frames_and_reads_back(tmp_path):
-    import shutil
-
     import curriculum_benchmark
 
     shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
@@ -84,38 +151,3 @@ def test_curriculum_benchmark_reports_chain_frames_and_reads_back(tmp_path):
     stamp = (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime
     curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])  # read back
     assert (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime == stamp
-
-
-def test_hard_task_benchmark_runs_every_method_and_reads_back(tmp_path, monkeypatch):
-    import shutil
-
-    import hard_task_benchmark
-
-    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
-    chain = tmp_path / "c.chain.yaml"
-    chain.write_text("name: demo\nstages:\n  - {name: a, recipe: tiny.yaml}\n  - {name: b, recipe: tiny.yaml}\n")
-    monkeypatch.setitem(hard_task_benchmark.TASKS, "demo",
-                        {"env": "MiniGrid-Empty-5x5-v0", "frames": 512, "target": 0.8, "chain": str(chain)})
-    out = tmp_path / "out"
-    argv = ["--task", "demo", "--frames", "512", "--seeds", "0", "--workers", "1", "--out", str(out)]
-    text = hard_task_benchmark.main(argv)
-    for method in ("| freamer | 0 |", "| ppo_mlp | 0 |", "| ppo_mlp_novelty | 0 |"):
-        assert method in text
-    assert (out / "learning_curve.png").is_file()
-    rows = (out / "results.csv").read_text().splitlines()
-    assert rows[0].startswith("method,seed,frames_to_80") and len(rows) == 4
-    stamps = {p.name: p.stat().st_mtime for p in (out / "jobs").iterdir()}
-    hard_task_benchmark.main(argv)  # finished runs are read back, not rerun
-    assert {p.name: p.stat().st_mtime for p in (out / "jobs").iterdir()} == stamps
-
-
-def test_ablation_benchmark_reports_each_arm_against_base(tmp_path):
-    import ablation_benchmark
-
-    text = ablation_benchmark.main(["--recipe", str(ROOT / "recipes" / "tiny.yaml"), "--env", "MiniGrid-Empty-5x5-v0",
-                                    "--frames", "256", "--seeds", "0", "--workers", "1", "--out", str(tmp_path),
-                                    "--arms", "base", "novelty", "ppo_mlp"])  # fmt: skip
-    for arm in ("| base |", "| novelty | shaping.novelty.weight=0.1 |", "| ppo_mlp |"):
-        assert arm in text
-    assert (tmp_path / "learning_curves.png").is_file()
-    assert (tmp_path / "results.csv").read_text().count("\n") == 4

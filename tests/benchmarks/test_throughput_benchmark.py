@@ -48,7 +48,7 @@ def test_ratios_are_per_round_and_old_rows_appear(tmp_path):
             rounds.append({"round": rnd, "threads": 1, "num_envs": 16, "method": m, "collect_fps": 2 * v,
                            "update_fps": 2 * v, "overall_fps": v})
     rounds.append({"round": 2, "threads": 1, "num_envs": 16, "method": "old", "error": "exit 1: boom"})
-    codes = {"current": "abc", "old": "411f9a7", "baseline": "ppo_mlp_baseline.py"}
+    codes = {"current": "abc", "old": "411f9a7", "baseline": "ppo_baseline"}
     rows = tb.summarise(rounds, [(1, 16)], ["current", "old", "baseline"], codes)
     cur = rows[0]
     assert cur["overall_fps_mean"] == 200.0 and (cur["overall_fps_min"], cur["overall_fps_max"]) == (100.0, 300.0)

@@ -92,17 +92,31 @@ def test_loader_roundtrip_matches_in_memory_generator(dataset):
     np.testing.assert_allclose(np.nan_to_num(a[:, 1:]), np.nan_to_num(b[:, 1:]), rtol=1e-5, atol=1e-4)
 
 
-def test_protocol_folder_variants_and_errors(dataset, tmp_path):
-    root, pdir = dataset
-    assert list(load_pamap2_protocol(pdir, subjects=[103])) == [103]  # the Protocol folder itself works too
+def test_protocol_accepts_the_protocol_folder_itself(dataset):
+    _, pdir = dataset
+    assert list(load_pamap2_protocol(pdir, subjects=[103])) == [103]
+
+
+def test_protocol_names_a_missing_subject_file(dataset):
+    root, _ = dataset
     with pytest.raises(Pamap2FormatError, match=r"subject105\.dat: file not found"):
         load_pamap2_protocol(root, subjects=[101, 105])
+
+
+def test_protocol_refuses_a_subject_outside_the_dataset(dataset):
+    root, _ = dataset
     with pytest.raises(ValueError, match="subjects"):
         load_pamap2_protocol(root, subjects=[99])
+
+
+def test_protocol_names_a_missing_folder(tmp_path):
     missing = tmp_path / "no_such_folder"
     with pytest.raises(Pamap2FormatError, match="PAMAP2 folder not found") as info:
         load_pamap2_protocol(missing)
     assert str(missing) in str(info.value)
+
+
+def test_protocol_refuses_a_folder_without_subject_files(tmp_path):
     (tmp_path / "empty_protocol" / "Protocol").mkdir(parents=True)
     with pytest.raises(Pamap2FormatError, match="no subjectNNN.dat"):
         load_pamap2_protocol(tmp_path / "empty_protocol")

@@ -11,11 +11,12 @@ from tensordict import TensorDict
 from torchrl.envs import ExplorationType, set_exploration_type
 
 from freamer_rl.run import env_registry
-from freamer_rl.errors import ConfigError
+from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.health.config import HealthConfig, health_config_from_dict, load_health_config
 from freamer_rl.health.anomaly_report import anomaly_report, record_episode
 from freamer_rl.health.agent import build_agent, load_agent, make_health_env
 from freamer_rl.world_model.metrics import imagination_horizon
+from freamer_rl.trainers.health import STRUCTURAL
 from freamer_rl.trainers.health import train as train_health
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -74,6 +75,18 @@ def test_bad_keys_and_types_name_the_field():
         health_config_from_dict({"env": {"num_envs": 8}, "collect": {"frames_per_iter": 100}})
     with pytest.raises(ConfigError, match="unknown key 'bogus'"):
         load_health_config(None, ["bogus=1"])
+    with pytest.raises(ConfigError, match=r"logging\.backend: expected csv, wandb or tensorboard"):
+        load_health_config(None, ["logging.backend=mlflow"])
+
+
+@pytest.mark.parametrize(("old", "new"), [("run.logger=csv", "logging.backend"),
+                                          ("run.progress_bar=false", "logging.progress_bar")])  # fmt: skip
+def test_health_uses_the_shared_logging_keys(old, new):
+    """One key per setting across trainers: the health-only keys of earlier releases are refused naming the new one."""
+    with pytest.raises(ConfigError, match=rf"{old.split('=')[0]}: this key was renamed; use {new}"):
+        load_health_config(RECIPES["mlp"], [old])
+    cfg = load_health_config(RECIPES["mlp"], [f"{new}={old.split('=')[1]}"])
+    assert cfg.logging.progress_bar is False if "progress" in new else cfg.logging.backend == "csv"
 
 
 def test_recipes_explore_and_normalise():
@@ -219,6 +232,37 @@ def test_run_health_writes_outputs(tiny_run):
     assert "commit" in info
     agent = load_agent(run_dir)
     assert agent.cfg.encoder.kind == "foundation"
+    # parameter counts of the one table helper, equal to the modules' own counts
+    wm = agent.world_model
+    assert summary["params_world_model"] == sum(p.numel() for p in wm.parameters())
+    assert summary["params_encoder"] == sum(p.numel() for p in wm.encoder.parameters())
+    assert summary["params_policy"] == sum(p.numel() for m in (agent.actor, agent.value) for p in m.parameters())
+    assert on_disk["trainer"] == "health" and on_disk["algorithm"] == "RSSM world model + imagination PPO"
+    assert on_disk["fps"] == pytest.approx(on_disk["frames"] / on_disk["wall_time_s"])
+
+
+def test_run_health_summary_is_strict_json_and_the_curve_is_drawn(tiny_run):
+    run_dir, _ = tiny_run
+
+    def refuse(name):
+        raise ValueError(f"not JSON: {name}")
+
+    json.loads((run_dir / "summary.json").read_text(), parse_constant=refuse)
+    assert (run_dir / "learning_curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # eval.every=1: the evaluation of iteration 1 stays in progress.csv after later rows without one
+    rows = (run_dir / "progress.csv").read_text().splitlines()
+    header = rows[0].split(",")
+    iteration_1 = dict(zip(header, rows[2].split(",")))
+    assert iteration_1["iteration"] == "1" and iteration_1["eval_return_mean"] != ""
+
+
+def test_resume_with_other_weight_sections_is_refused(tiny_run):
+    """The structural sections are the registry entry's (trainers.health.STRUCTURAL): world_model shapes weights."""
+    run_dir, _ = tiny_run
+    assert "world_model" in STRUCTURAL
+    cfg = load_health_config(RECIPES["foundation"], [*TINY, "eval.every=1", "world_model.hidden=24"])
+    with pytest.raises(CheckpointError, match=r"world_model\.hidden: checkpoint 16 vs now 24"):
+        train_health(cfg, run_dir)
 
 
 def test_anomaly_report_writes_png(tiny_run, tmp_path):

@@ -1,8 +1,6 @@
 """Exploration bonuses (NoveltyBonus, CuriosityModel, R_VL) and the reward mixer (paper App. G.1, G.2, A.5)."""
 
 import math
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -15,7 +13,6 @@ from freamer_rl.machinery.exploration import CuriosityModel, NoveltyBonus, next_
 from freamer_rl.machinery.reward_mixer import RewardMixer
 
 torch.set_num_threads(1)
-ROOT = Path(__file__).resolve().parents[2]
 
 
 class ScriptEnv(EnvBase):
@@ -322,16 +319,3 @@ def test_time_penalty_matches_appendix_a5():
     mixer(td, success_rate=0.295)
     assert td["next", "shaped_reward"].sum().item() == pytest.approx(-9.39, abs=5e-3)
 
-
-# -- PPO-MLP baseline with the novelty bonus --------------------------------------------------------------------
-def test_ppo_mlp_with_novelty_runs():
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from ppo_mlp_baseline import make_flat_env, train_ppo_mlp
-
-    env = make_flat_env("MiniGrid-Empty-5x5-v0", 0, novelty_alpha=0.5)
-    data = env.rollout(20)
-    assert data["next", "novelty_bonus"].max() > 0 and data["next", "reward"].shape == (20, 1)
-    env.close()
-    out = train_ppo_mlp("MiniGrid-Empty-5x5-v0", 0, 512, frames_per_batch=256, novelty_weight=0.1)
-    assert out["method"] == "ppo_mlp_novelty" and out["frames"] == 512 and len(out["rows"]) == 2
-    assert set(out["rows"][0]) >= {"frames", "episodes", "success_rate", "return_mean"}

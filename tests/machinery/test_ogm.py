@@ -51,9 +51,12 @@ def test_coefficients_ignore_unknown_and_non_finite_losses():
     ogm = OGMGE(_refiners())
     ogm.observe({"state": float("nan"), "reward": 1.0, "vision": 3.0})
     assert ogm.convergence() == {"reward": 1.0}
+    assert ogm.coefficients() == {"state": 1.0, "reward": 1.0}  # one modality observed: nothing to compare
     ogm.observe({"state": 0.0, "reward": 1.0})  # a first loss of exactly 0 does not divide by zero
     ogm.observe({"state": 0.0, "reward": 1.0})
-    assert all(math.isfinite(v) and 0.0 <= v <= 1.0 for v in ogm.coefficients().values())
+    # c_state = 0 / eps = 0 (fully converged), c_reward = 1: the state gate is suppressed to k = 1 - tanh(inf) = 0
+    assert ogm.convergence() == {"state": 0.0, "reward": 1.0}
+    assert ogm.coefficients() == {"state": pytest.approx(0.0, abs=1e-12), "reward": 1.0}
 
 
 @pytest.mark.parametrize("mode", ["A", "B"])

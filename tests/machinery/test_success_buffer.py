@@ -63,11 +63,17 @@ def test_success_mask_on_hand_made_batches():
 
     assert torch.equal(success_step_mask(td, spy), expected)
     assert seen == [int(td["next", "done"].sum())]
-    # leading dims [workers, envs, T] (a multi-process collector)
+
+
+def test_success_mask_with_leading_worker_dims():
+    """``[workers, envs, T]`` (a multi-process collector): each worker's rows masked as alone."""
+    td, expected = hand_batch()
     stacked = torch.stack([td, td.clone()], 0)
     assert torch.equal(success_step_mask(stacked, MINIGRID_SUCCESS), torch.stack([expected, expected]))
-    # no episode ended: nothing marked, success_fn not called
-    quiet = td.clone()
+
+
+def test_success_mask_without_episode_ends_marks_nothing():
+    quiet, _ = hand_batch()
     quiet["next", "done"].zero_()
     assert not success_step_mask(quiet, lambda ends: pytest.fail("called without ends")).any()
 
@@ -94,27 +100,39 @@ def seqs_with_ids(ids, L=4):
     }, batch_size=[len(ids), L])  # fmt: skip
 
 
+def _ids(buf):
+    return buf.ordered()["id"][:, 0].tolist()
+
+
 def test_buffer_keeps_masked_sequences_fifo():
     buf = SuccessBuffer(3)
-    assert len(buf) == 0 and buf.sample(2) is None
+    assert len(buf) == 0 and buf.sample(2) is None and buf.ordered() is None
     mask = torch.zeros(4, 4, dtype=torch.bool)
     mask[0, 3] = mask[2, :] = True
     assert buf.add(seqs_with_ids([0, 1, 2, 3]), mask) == 2  # sequences 0 and 2
-    assert len(buf) == 2
+    assert _ids(buf) == [0, 2]
     assert buf.add(seqs_with_ids([4, 5]), torch.ones(2, 4, dtype=torch.bool)) == 2
-    assert len(buf) == 3  # capacity: the oldest (0) went
-    ids = buf.ordered()["id"][:, 0].tolist()
-    assert ids == [2, 4, 5]
+    assert len(buf) == 3 and _ids(buf) == [2, 4, 5]  # capacity: the oldest (0) went
+    stored_mask = dict(zip(_ids(buf), buf.ordered()[REPLAY_MASK_KEY]))
+    assert stored_mask[2].all() and stored_mask[4].all()
+
+
+def test_buffer_batch_larger_than_capacity_keeps_its_newest():
+    buf = SuccessBuffer(3)
+    buf.add(seqs_with_ids([0]), torch.ones(1, 4, dtype=torch.bool))
+    buf.add(seqs_with_ids([10, 11, 12, 13, 14]), torch.ones(5, 4, dtype=torch.bool))
+    assert _ids(buf) == [12, 13, 14]
+
+
+def test_buffer_samples_without_replacement_up_to_its_size():
+    buf = SuccessBuffer(3)
+    buf.add(seqs_with_ids([2, 4, 5]), torch.ones(3, 4, dtype=torch.bool))
     s = buf.sample(2)
     assert s.batch_size == (2, 4) and s["id"][:, 0].unique().numel() == 2  # without replacement
     assert set(s["id"][:, 0].tolist()) <= {2, 4, 5}
     assert s[REPLAY_MASK_KEY].dtype == torch.bool and s[REPLAY_MASK_KEY].shape == (2, 4)
-    assert buf.sample(7).batch_size == (7, 4)  # more than stored: with replacement
-    stored_mask = {int(i): m for i, m in zip(buf.ordered()["id"][:, 0], buf.ordered()[REPLAY_MASK_KEY])}
-    assert stored_mask[2].all()
-    # a batch larger than the capacity keeps its newest sequences
-    buf.add(seqs_with_ids([10, 11, 12, 13, 14]), torch.ones(5, 4, dtype=torch.bool))
-    assert buf.ordered()["id"][:, 0].tolist() == [12, 13, 14]
+    big = buf.sample(7)  # more than stored: with replacement
+    assert big.batch_size == (7, 4) and set(big["id"][:, 0].tolist()) <= {2, 4, 5}
 
 
 def test_buffer_refuses_foreign_batches():
@@ -131,23 +149,35 @@ def test_buffer_refuses_foreign_batches():
         buf.add(seqs_with_ids([1]), torch.ones(1, 3, dtype=torch.bool))
 
 
-def test_buffer_state_dict_round_trip(tmp_path):
+def _wrapped_buffer():
     buf = SuccessBuffer(3)
     for start in (0, 2, 4):  # wraps around: the stored order is 3, 4, 5
         buf.add(seqs_with_ids([start, start + 1]), torch.ones(2, 4, dtype=torch.bool))
-    path = tmp_path / "buf.pt"
-    torch.save({"success_buffer": buf.state_dict()}, path)
-    state = torch.load(path, weights_only=True)["success_buffer"]
+    return buf
+
+
+def _saved_and_loaded(state, tmp_path):
+    torch.save({"success_buffer": state}, tmp_path / "buf.pt")
+    return torch.load(tmp_path / "buf.pt", weights_only=True)["success_buffer"]
+
+
+def test_buffer_state_dict_round_trip(tmp_path):
+    buf = _wrapped_buffer()
     back = SuccessBuffer(3)
-    back.load_state_dict(state)
-    assert len(back) == 3
+    back.load_state_dict(_saved_and_loaded(buf.state_dict(), tmp_path))
+    assert len(back) == 3 and _ids(back) == [3, 4, 5]
     assert (back.ordered() == buf.ordered()).all()
-    # FIFO continues where it stopped
-    back.add(seqs_with_ids([9]), torch.ones(1, 4, dtype=torch.bool))
-    assert back.ordered()["id"][:, 0].tolist() == [4, 5, 9]
+    back.add(seqs_with_ids([9]), torch.ones(1, 4, dtype=torch.bool))  # FIFO continues where it stopped
+    assert _ids(back) == [4, 5, 9]
+
+
+def test_buffer_loaded_into_a_smaller_capacity_keeps_the_newest(tmp_path):
     small = SuccessBuffer(2)
-    small.load_state_dict(state)
-    assert small.ordered()["id"][:, 0].tolist() == [4, 5]
+    small.load_state_dict(_saved_and_loaded(_wrapped_buffer().state_dict(), tmp_path))
+    assert _ids(small) == [4, 5]
+
+
+def test_buffer_empty_state_and_missing_entries():
     empty = SuccessBuffer(2)
     empty.load_state_dict(SuccessBuffer(2).state_dict())
     assert len(empty) == 0
@@ -359,60 +389,92 @@ def freamer_replay_fns(modules):
     return log_prob_fn, value_fn
 
 
-@pytest.mark.filterwarnings("ignore::UserWarning")
-def test_mixed_minibatch_on_the_tiny_freamer(tmp_path):
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+    """The tiny FreamerV1, one collected batch after the trainer's advantage step, and 2 replayed sequences of env 0
+    (forced successful: a random policy rarely succeeds)."""
     cfg = load_config(TINY, ["run.total_frames=128"])
-    trainer = Trainer(cfg, tmp_path / "run", resume=False)
-    modules, L = trainer.modules, cfg.ppo.sequence_length
+    trainer = Trainer(cfg, tmp_path_factory.mktemp("tiny") / "run", resume=False)
+    trainer.life.lock.release()
     data = trainer.compute_advantage(trainer.collect_batch())
     mask = success_step_mask(data, env_registry.get_adapter(cfg.env.adapter).success)
     assert mask.shape == data.shape
     forced = mask.clone()
-    forced[0] = True  # a random policy rarely succeeds: treat env 0's steps as successful
+    forced[0] = True
     buffer = SuccessBuffer(16, device=trainer.device)
-    seqs = replay_sequences(data, forced, L, drop=modules.trunk.out_keys)
-    assert ("next", "grid") not in seqs.keys(True) and ("next", "terminated") in seqs.keys(True)
-    assert buffer.add(seqs) >= data.shape[-1] // L
+    seqs = replay_sequences(data, forced, cfg.ppo.sequence_length, drop=trainer.modules.trunk.out_keys)
+    assert buffer.add(seqs) >= data.shape[-1] // cfg.ppo.sequence_length
+    return cfg, trainer, data, seqs, buffer.sample(2)
 
-    replay = buffer.sample(2)
-    log_prob_fn, value_fn = freamer_replay_fns(modules)
+
+def _trainer_loss(cfg, modules, reduction):
+    """The trainer's ClipPPOLoss settings."""
+    p = cfg.ppo
+    return ClipPPOLoss(modules.actor, modules.critic, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coeff,
+                       critic_coeff=p.critic_coeff, loss_critic_type="l2", normalize_advantage=p.normalize_advantage,
+                       functional=False, reduction=reduction)  # fmt: skip
+
+
+def test_replay_sequences_drop_the_trunk_outputs(tiny):
+    _, _, _, seqs, _ = tiny
+    assert ("next", "grid") not in seqs.keys(True) and ("next", "terminated") in seqs.keys(True)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_replay_without_an_update_is_on_policy(tiny):
+    """No update since collection: pi_k == mu, the recurrent values match GAE's step-mode ones, weights 0/1."""
+    cfg, trainer, _, _, replay = tiny
+    L = cfg.ppo.sequence_length
+    log_prob_fn, value_fn = freamer_replay_fns(trainer.modules)
     fixed = correct_replay(replay, log_prob_fn=log_prob_fn, value_fn=value_fn, gamma=cfg.ppo.gamma, rho_clip=1.0)
-    # no update since collection: pi_k == mu and the recurrent values match the step-mode values of GAE
     torch.testing.assert_close(fixed["action_log_prob"], replay["action_log_prob"], atol=1e-4, rtol=0)
     torch.testing.assert_close(fixed["state_value"], replay["state_value"], atol=1e-4, rtol=0)
     expect_w = (replay[REPLAY_MASK_KEY] & (replay["next", "terminated"].squeeze(-1)
                                            | (torch.arange(L) < L - 1) & ~replay["next", "done"].squeeze(-1)))
     torch.testing.assert_close(fixed[LOSS_WEIGHT_KEY], expect_w.float(), atol=1e-4, rtol=0)
 
-    onp = split_sequences(data.exclude("next", *modules.trunk.out_keys), L)[:4]
-    p = cfg.ppo
 
-    def trainer_loss(reduction):  # the trainer's ClipPPOLoss settings
-        return ClipPPOLoss(modules.actor, modules.critic, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coeff,
-                           critic_coeff=p.critic_coeff, loss_critic_type="l2",
-                           normalize_advantage=p.normalize_advantage, functional=False, reduction=reduction)
-
-    loss = trainer_loss("none")
-    # without replay the weighted reduction is the mean reduction the trainer uses today
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_weighted_reduction_without_replay_is_the_trainers_mean(tiny):
+    cfg, trainer, data, _, _ = tiny
+    modules = trainer.modules
+    onp = split_sequences(data.exclude("next", *modules.trunk.out_keys), cfg.ppo.sequence_length)[:4]
     with set_recurrent_mode(True):
         mb = modules.trunk(mix_minibatch(onp))
-    ours, theirs = weighted_ppo_loss(loss(mb), mb[LOSS_WEIGHT_KEY]), trainer_loss("mean")(mb)
+    ours = weighted_ppo_loss(_trainer_loss(cfg, modules, "none")(mb), mb[LOSS_WEIGHT_KEY])
+    theirs = _trainer_loss(cfg, modules, "mean")(mb)
     for key in ("loss_objective", "loss_critic", "loss_entropy"):
         torch.testing.assert_close(ours[key], theirs[key], rtol=1e-6, atol=1e-7)
 
-    with torch.no_grad():  # the policy moves on: replayed steps are now off-policy
-        for q in modules.actor.parameters():
-            q.add_(0.05 * torch.randn_like(q))
-    fixed = correct_replay(replay, log_prob_fn=log_prob_fn, value_fn=value_fn, gamma=cfg.ppo.gamma, rho_clip=1.0)
-    assert fixed[LOSS_WEIGHT_KEY].max() <= 1.0 and not torch.equal(fixed["action_log_prob"], replay["action_log_prob"])
-    mixed = mix_minibatch(onp, fixed)
-    assert mixed.batch_size == (6, L)
-    with set_recurrent_mode(True):
-        mb = modules.trunk(mixed)
-    out = weighted_ppo_loss(loss(mb), mb[LOSS_WEIGHT_KEY])
-    total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
-    assert torch.isfinite(total)
-    total.backward()
-    grads = [q.grad for q in trainer.params if q.grad is not None]
-    assert grads and all(torch.isfinite(g).all() for g in grads)
-    assert any(g.abs().sum() > 0 for g in grads)
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_off_policy_mixed_minibatch_trains(tiny):
+    """The policy moves on: replayed steps get clipped IS weights, and the mixed loss has finite, non-zero grads."""
+    cfg, trainer, data, _, replay = tiny
+    modules, L = trainer.modules, cfg.ppo.sequence_length
+    saved = {k: v.clone() for k, v in modules.actor_value.state_dict().items()}
+    try:
+        with torch.no_grad():
+            for q in modules.actor.parameters():
+                q.add_(0.05 * torch.randn_like(q))
+        log_prob_fn, value_fn = freamer_replay_fns(modules)
+        fixed = correct_replay(replay, log_prob_fn=log_prob_fn, value_fn=value_fn, gamma=cfg.ppo.gamma, rho_clip=1.0)
+        assert not torch.equal(fixed["action_log_prob"], replay["action_log_prob"])
+        ratio = (fixed["action_log_prob"] - replay["action_log_prob"]).exp()
+        trained = fixed[LOSS_WEIGHT_KEY] > 0
+        torch.testing.assert_close(fixed[LOSS_WEIGHT_KEY][trained], ratio.clamp_max(1.0)[trained])
+        onp = split_sequences(data.exclude("next", *modules.trunk.out_keys), L)[:4]
+        mixed = mix_minibatch(onp, fixed)
+        assert mixed.batch_size == (6, L)
+        with set_recurrent_mode(True):
+            mb = modules.trunk(mixed)
+        out = weighted_ppo_loss(_trainer_loss(cfg, modules, "none")(mb), mb[LOSS_WEIGHT_KEY])
+        total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
+        assert torch.isfinite(total)
+        total.backward()
+        grads = [q.grad for q in trainer.params if q.grad is not None]
+        assert grads and all(torch.isfinite(g).all() for g in grads)
+        assert any(g.abs().sum() > 0 for g in grads)
+    finally:
+        modules.actor_value.load_state_dict(saved)
+        modules.actor_value.zero_grad(set_to_none=True)

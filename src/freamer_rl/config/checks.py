@@ -28,13 +28,32 @@ __all__ = ["Range", "POSITIVE", "NON_NEGATIVE", "UNIT_INTERVAL", "check_recipe_f
            "check_logging", "run_name_problem"]
 
 
+class RecipeLoader(yaml.SafeLoader):
+    """``yaml.safe_load`` with YAML 1.2 booleans: only ``true`` / ``false`` are bools, so ``placement: off`` or
+    ``yes`` stay the strings the recipe wrote (YAML 1.1, PyYAML's default, reads on/off/yes/no as bools)."""
+
+
+RecipeLoader.yaml_implicit_resolvers = {
+    first: [(tag, regexp) for tag, regexp in resolvers if tag != "tag:yaml.org,2002:bool"]
+    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
+}
+RecipeLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:bool", re.compile(r"^(?:true|True|TRUE|false|False|FALSE)$"), list("tTfF")
+)
+
+
+def load_yaml(text: str) -> Any:
+    """A recipe's or an override's YAML with :class:`RecipeLoader` (safe; YAML 1.2 booleans)."""
+    return yaml.load(text, Loader=RecipeLoader)  # noqa: S506 (a SafeLoader subclass)
+
+
 class _DuplicateKey(Exception):
     def __init__(self, key: Any, line: int, first_line: int) -> None:
         super().__init__(key)
         self.key, self.line, self.first_line = key, line, first_line
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
+class _UniqueKeyLoader(RecipeLoader):
     """``yaml.safe_load`` that refuses a key given twice in one mapping (PyYAML silently keeps the last one)."""
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict:

@@ -23,7 +23,7 @@ from typing import Any
 
 import yaml
 
-from freamer_rl.config.checks import check_recipe_file
+from freamer_rl.config.checks import check_recipe_file, load_yaml
 from freamer_rl.errors import ConfigError
 
 
@@ -125,7 +125,7 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not parts:
         raise ConfigError(f"override '{text}' has an empty key")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = load_yaml(raw) if raw.strip() else None
     except yaml.YAMLError as err:
         raise ConfigError(f"override '{text}': value is not valid YAML ({err.problem})") from None
     return parts, value
@@ -186,7 +186,7 @@ def read_recipe(path: str | Path | None, overrides: list[str] | None = None) -> 
             raise ConfigError(f"recipe file not found: {path}")
         check_recipe_file(path)  # duplicate keys, an empty file
         try:
-            data = yaml.safe_load(path.read_text()) or {}
+            data = load_yaml(path.read_text()) or {}
         except yaml.YAMLError as err:
             mark = getattr(err, "problem_mark", None)
             where = f"{path}:{mark.line + 1}" if mark is not None else str(path)

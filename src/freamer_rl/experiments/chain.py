@@ -21,7 +21,8 @@ towards its budget).
 Overrides on the command line follow one rule: a key that is a chain-file field (``name``, ``seed``, ``output_dir``,
 ``overrides``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to every stage,
 after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
-every stage for a smoke test). ``run.seed`` is always the chain's ``seed``.
+every stage for a smoke test). ``run.seed`` is always the chain's ``seed``. The output folder is checked writable
+before the first stage; one overall progress bar (a log line per stage off a terminal) gives the ETA.
 """
 
 from __future__ import annotations
@@ -34,8 +35,9 @@ from typing import Any
 
 from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
-from freamer_rl.errors import ConfigError
+from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.folders import prepare_output_folder
+from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
@@ -129,30 +131,45 @@ def run_chain(
     stage_overrides = [*given_to_stages, *(stage_overrides or [])]
     cfg = load_chain(path, overrides)
     root = prepare_output_folder(Path(cfg.output_dir) / f"{cfg.name}-s{cfg.seed}", "output_dir")
-    rows: list[dict[str, Any]] = []
-    previous: Path | None = None
-    total = 0
+    plans = []  # (stage, recipe, run dir, overrides without run.init_from, its summary when finished)
     for i, stage in enumerate(cfg.stages):
-        recipe = _stage_recipe(path, stage, i)
-        run_dir = root / stage.name
         given = [*cfg.overrides, *stage.overrides, *stage_overrides, f"run.seed={cfg.seed}"]
-        if previous is not None:
-            given.append(f"run.init_from={previous}")
-        summary = _finished(run_dir)
-        if summary is None:
-            name, stage_cfg = load_recipe(recipe, given)
-            logger.info("chain %s: stage %d/%d %s (%s)", cfg.name, i + 1, len(cfg.stages), stage.name, recipe.name)
-            summary = get_trainer(name).train(stage_cfg, run_dir, resume=True)
-        else:
-            logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
-        total += int(summary["frames"])
-        rows.append({"stage": stage.name, "env": summary.get("env"), "frames": summary["frames"],
-                     "chain_frames": total, "episodes": summary.get("episodes"),
-                     "final_success_rate": summary.get("final_success_rate"),
-                     "frames_to_95": summary.get("frames_to_95"), "run_dir": str(run_dir)})  # fmt: skip
-        previous = run_dir
+        plans.append((stage, _stage_recipe(path, stage, i), root / stage.name, given, _finished(root / stage.name)))
+    todo = [i for i, plan in enumerate(plans) if plan[4] is None]
+    progress = OverallProgress(f"chain {cfg.name}", [_stage_frames(plans[i][1], plans[i][3]) for i in todo],
+                               item="stages")  # fmt: skip
+    rows: list[dict[str, Any]] = []
+    total = 0
+    try:
+        for i, (stage, recipe, run_dir, given, summary) in enumerate(plans):
+            if i:
+                given = [*given, f"run.init_from={plans[i - 1][2]}"]
+            if summary is None:
+                name, stage_cfg = load_recipe(recipe, given)
+                logger.info("chain %s: stage %d/%d %s (%s)", cfg.name, i + 1, len(plans), stage.name, recipe.name)
+                summary = get_trainer(name).train(stage_cfg, run_dir, resume=True)
+                progress.advance(todo.index(i), f"stage {stage.name} done: {int(summary['frames']):,} frames")
+            else:
+                logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
+            total += int(summary["frames"])
+            rows.append({"stage": stage.name, "env": summary.get("env"), "frames": summary["frames"],
+                         "chain_frames": total, "episodes": summary.get("episodes"),
+                         "final_success_rate": summary.get("final_success_rate"),
+                         "frames_to_95": summary.get("frames_to_95"), "run_dir": str(run_dir)})  # fmt: skip
+    finally:
+        progress.close()
     _write_summary(root, cfg, rows)
     return rows
+
+
+def _stage_frames(recipe: Path, given: list[str]) -> int | None:
+    """The stage's frame budget for the overall progress; None when its config does not load (the stage's own load
+    then names the error)."""
+    try:
+        _, stage_cfg = load_recipe(recipe, given)
+    except FreamerError:
+        return None
+    return getattr(getattr(stage_cfg, "run", None), "total_frames", None)
 
 
 def _write_summary(root: Path, cfg: ChainConfig, rows: list[dict[str, Any]]) -> None:

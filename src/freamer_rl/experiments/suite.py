@@ -20,6 +20,12 @@ the schema's ``progress_bar=false``. ``freamer-rl suite`` runs them ``--jobs`` a
 an interrupted one resumes from its latest checkpoint (the trainer's own resume and run-directory lock). A failing
 run is recorded (``failed.txt``, a ``failed`` row) and the others go on. The report is
 :func:`freamer_rl.experiments.report.write_report`.
+
+The results folder is created and checked writable before anything trains and stays locked for the whole suite (a
+second suite on the same folder is refused, naming the holder's pid). Workers die with the suite process, ``kill
+-9`` included (they checkpoint on the SIGTERM they get), so a rerun finds no run still locked. One overall progress
+bar with an ETA (frames-weighted when every run's budget is known; a log line per finished run when not on a
+terminal) replaces the per-run lines.
 """
 
 from __future__ import annotations
@@ -39,13 +45,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import torch
+
 from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
 from freamer_rl.errors import ConfigError, FreamerError
-from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.experiments.folders import prepare_output_folder
 from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, failed_line, run_status, write_report
+from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
@@ -221,8 +229,6 @@ def _init_worker(parent: int) -> None:
     left training would hold its run lock, so a rerun would be refused): the kernel sends SIGTERM when the parent dies
     (Linux ``prctl(PR_SET_PDEATHSIG)``), and a parent-pid watchdog thread covers other systems and a parent that died
     before the ``prctl``."""
-    import torch
-
     torch.set_num_threads(1)
     if sys.platform.startswith("linux"):
         try:

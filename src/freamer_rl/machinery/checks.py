@@ -20,6 +20,9 @@ def check_machinery(cfg: Any) -> None:
                           "(e.g. Qwen2.5-1.5B-Instruct), or use shaping.language.parser=regex")  # fmt: skip
     if cfg.ogm.mode not in ("none", "A", "B"):
         raise ConfigError(f"ogm.mode: expected none, A or B, got {cfg.ogm.mode!r}")
+    if cfg.ogm.mode != "none" and cfg.model.flow.placement != "pre":
+        raise ConfigError(f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE modulates one refiner per modality and "
+                          f"model.flow.placement is {cfg.model.flow.placement!r}; use placement pre or ogm.mode=none")
     if cfg.ogm.mode != "none" and not cfg.aux.lambda_fm:
         raise ConfigError(f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE is driven by the FM losses and aux.lambda_fm "
                           "is 0; set aux.lambda_fm > 0 or ogm.mode=none")  # fmt: skip

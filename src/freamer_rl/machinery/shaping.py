@@ -66,7 +66,9 @@ class RewardShaper:
         self.vl_keys = None
         if s.vision_language:
             first = "vision" if "vision" in modalities else "state"
-            self.vl_keys = (("refined", first), ("refined", "language"))
+            # the refined embeddings when each modality has a refiner (model.flow.placement: pre), else the raw ones
+            prefix = "refined" if cfg.model.flow.placement == "pre" else "embed"
+            self.vl_keys = ((prefix, first), (prefix, "language"))
             terms["vl"] = (("next", "vl_reward"), s.vision_language)
             self.gamma = cfg.ppo.gamma
         self.curiosity: CuriosityModel | None = None

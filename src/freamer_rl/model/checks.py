@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from freamer_rl.errors import ConfigError
+from freamer_rl.model.factory import FUSIONS, PLACEMENTS
 from freamer_rl.model.modalities import MODALITIES
 
 __all__ = ["check_model_names", "check_model_shapes"]
@@ -27,7 +28,7 @@ def check_model_shapes(cfg: Any) -> None:
     for name, h in heads:
         if d % h:
             raise ConfigError(f"model.embed_dim: got {d}, must be divisible by {name} ({h})")
-    if m.fno.modes > d // 2 + 1:
+    if m.fusion == "fno" and m.fno.modes > d // 2 + 1:
         raise ConfigError(f"model.fno.modes: got {m.fno.modes}, must be <= model.embed_dim // 2 + 1 = {d // 2 + 1} "
                           f"(the fuser's rfft runs along the {d} embedding entries)")  # fmt: skip
     cells = _MINIGRID_VIEW_CELLS
@@ -60,8 +61,17 @@ def check_model_names(model: Any) -> None:
     if model.vision.backbone not in ("cnn", "clip"):
         raise ConfigError(f"model.vision.backbone: expected 'cnn' or 'clip', got {model.vision.backbone!r}")
     for m in model.flow.gate_init:
-        if m not in MODALITIES:
-            raise ConfigError(f"model.flow.gate_init: unknown modality '{m}'")
+        if m not in MODALITIES and m != "fused":
+            raise ConfigError(f"model.flow.gate_init: unknown modality '{m}' (known: {', '.join(MODALITIES)}, and "
+                              "fused for model.flow.placement=post)")  # fmt: skip
+    if model.flow.placement not in PLACEMENTS:
+        raise ConfigError(f"model.flow.placement: expected one of {', '.join(PLACEMENTS)}, got "
+                          f"{model.flow.placement!r}")  # fmt: skip
+    if model.fusion not in FUSIONS:
+        raise ConfigError(f"model.fusion: expected one of {', '.join(FUSIONS)}, got {model.fusion!r}")
+    if model.fusion_hidden is not None and model.fusion != "concat":
+        raise ConfigError(f"model.fusion_hidden: got {model.fusion_hidden}, but only model.fusion=concat has an MLP "
+                          f"(model.fusion is {model.fusion!r}); leave it unset")  # fmt: skip
     steps = model.flow.adaptive_steps
     if any(not 1 <= s <= _MAX_ADAPTIVE_STEPS for s in steps) or len(set(steps)) != len(steps):
         raise ConfigError(f"model.flow.adaptive_steps: got {steps}, expected distinct step counts in "

@@ -50,6 +50,9 @@ class VectorConfig:
 class FlowConfig:
     """Layer 2 per-modality flow-matching refiner (Eq. 1-3, A13)."""
 
+    # pre: one refiner per modality before the fuser (the paper's "filter before mixing"); post: one refiner on the
+    # fused vector before the DNC; off: no refiner and no FM loss (ablations, see README "Architecture switches")
+    placement: str = "pre"
     hidden: int = 128
     steps: int = 4
     noise_std: float = 1.0
@@ -88,6 +91,9 @@ class ModelConfig:
     # as the CLIP tower always is. Their refiners, the fuser and everything downstream still train.
     freeze_encoders: list[str] = field(default_factory=list)
     embed_dim: int = 128
+    # Layer 3: fno (spectral fusion, the paper's), concat (concatenation + MLP to embed_dim), mean (no parameters)
+    fusion: str = "fno"
+    fusion_hidden: int | None = None  # width of the concat MLP (None: embed_dim); set it to match parameter counts
     cross_modal_heads: int = 4
     head_hidden: int = 128
     vision: VisionConfig = field(default_factory=VisionConfig)

@@ -3,6 +3,8 @@
 The result is made of plain TorchRL/tensordict parts::
 
     trunk  = TensorDictSequential(encoders -> [cross-modal] -> pools -> FM refiners -> stack -> FNO -> DNC)
+             (ablations: model.flow.placement pre | post | off moves the refiner after the fuser or drops it;
+              model.fusion fno | concat | mean swaps the fuser; model.dnc.enabled false drops the memory)
     actor  = ProbabilisticActor(head on "hidden")                 # from the action spec (freamer_rl.model.heads)
     critic = ValueOperator(value head on "hidden")
     actor_value = ActorValueOperator(trunk, actor, critic)        # .get_policy_operator() / .get_value_operator()
@@ -35,6 +37,7 @@ from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention, SlotPool
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser
+from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
 from freamer_rl.layers.tdmodule import KeyedModule
 
@@ -56,8 +59,8 @@ class FreamerModules:
     trunk: TensorDictSequential
     actor: ProbabilisticActor
     critic: ValueOperator
-    refiners: nn.ModuleDict
-    fuser: FNOFuser
+    refiners: nn.ModuleDict  # {modality: refiner} (placement pre), {"fused": refiner} (post) or {} (off)
+    fuser: FNOFuser | ConcatFuser | MeanFuser
     dnc: DNCModule | None
     modalities: list[str]
 
@@ -97,7 +100,9 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
         modalities, d, flow_hidden=cfg.flow.hidden, flow_steps=cfg.flow.steps,
         flow_adaptive_steps=tuple(getattr(cfg.flow, "adaptive_steps", None) or ()) or None,
         flow_tau=float(getattr(cfg.flow, "adaptive_tau", 1.0)),
-        gate_init={m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
+        gate_init={**{m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
+                   "fused": cfg.flow.gate_init.get("fused", FUSED_GATE_INIT)},
+        placement=cfg.flow.placement, fusion=cfg.fusion, fusion_hidden=cfg.fusion_hidden,
         fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
         dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
         compile=cfg.compile,
@@ -129,6 +134,9 @@ def build_filter_mix_memory(
     gate_init: Mapping[str, float],
     flow_adaptive_steps: Sequence[int] | None = None,
     flow_tau: float = 1.0,
+    placement: str = "pre",
+    fusion: str = "fno",
+    fusion_hidden: int | None = None,
     fno_modes: int,
     fno_residual_scale: float,
     fno_output_norm: bool = False,
@@ -152,6 +160,12 @@ def build_filter_mix_memory(
         "fused"        -> DNCModule            -> out_key [*B, D_out], ("next", *memory_key) [*B, N, W]  App. F.1
                           (``dnc=False``: Linear(d, D_out) -> GELU, stateless)
 
+    ``placement="post"`` stacks the raw ``("embed", m)``, the fuser writes ``("embed", "fused")`` and one refiner
+    (``refiners["fused"]``) turns it into ``"fused"``: refinement after mixing, the comparison the paper names as
+    missing. ``placement="off"`` stacks ``("embed", m)`` and refines nothing. ``fusion="concat"`` /
+    ``"mean"`` swap the FNO fuser for :class:`~freamer_rl.layers.fusion.ConcatFuser` (``fusion_hidden`` wide) or
+    :class:`~freamer_rl.layers.fusion.MeanFuser` (same keys).
+
     The modules are built in that order (refiners in ``modalities`` order, then the fuser, then the DNC), so a seeded
     model gets the same initial weights wherever it is built. ``fno_modes`` is used as given (the fuser checks it
     against ``d``). The DNC follows TorchRL's stateful pattern: step mode by default, ``[*B, T]`` sequences under
@@ -162,7 +176,9 @@ def build_filter_mix_memory(
         dim: embedding width ``d``. flow_hidden, flow_steps: velocity MLP width and Euler steps of each refiner.
         flow_adaptive_steps, flow_tau: step-count choices and Gumbel-Softmax temperature of the score-based
             adaptive complexity (Appendix G.4; ``None``/empty: off, every refiner takes ``flow_steps`` steps).
-        gate_init: initial gate logit ``alpha_m`` per modality (every modality must be present).
+        gate_init: initial gate logit ``alpha_m`` per refined modality (``"fused"`` for ``placement="post"``).
+        placement, fusion, fusion_hidden: where the refiners sit (``pre``, ``post``, ``off``), the fuser (``fno``,
+            ``concat``, ``mean``) and the concat MLP's width (default ``d``).
         fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
         dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
         compile: ``torch.compile`` the DNC step (with an eager fallback; :class:`~freamer_rl.layers.dnc.DNCModule`).
@@ -173,22 +189,28 @@ def build_filter_mix_memory(
         ``(steps, refiners, fuser, dnc)``: the TensorDict modules, ``{m: FlowMatchingRefiner}``, the fuser and the
         :class:`~freamer_rl.layers.dnc.DNCModule` (``None`` when ``dnc=False``).
     """
-    missing = [m for m in modalities if m not in gate_init]
+    if placement not in PLACEMENTS or fusion not in FUSIONS:
+        raise ValueError(f"placement must be one of {PLACEMENTS} and fusion one of {FUSIONS}; got {placement!r}, "
+                         f"{fusion!r}")  # fmt: skip
+    refined = list(modalities) if placement == "pre" else ["fused"] if placement == "post" else []
+    missing = [m for m in refined if m not in gate_init]
     if missing:
-        raise ValueError(f"gate_init: no initial gate for modalities {missing} (given: {sorted(gate_init)})")
+        raise ValueError(f"gate_init: no initial gate for {missing} (given: {sorted(gate_init)})")
     d_out = dim if output_dim is None else output_dim
     steps: list[nn.Module] = []
     refiners = nn.ModuleDict()
-    for m in modalities:
+    for m in refined:
         refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m],
                                           adaptive_steps=flow_adaptive_steps, tau=flow_tau)  # fmt: skip
+    stack_in = [("refined", m) for m in modalities] if placement == "pre" else [("embed", m) for m in modalities]
+    for m in modalities if placement == "pre" else []:
         steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
-    steps.append(
-        KeyedModule(StackModalities(), in_keys=[("refined", m) for m in modalities], out_keys=["modal_stack"])
-    )
-    fuser = FNOFuser(num_modalities=len(modalities), dim=dim, modes=fno_modes, residual_scale=fno_residual_scale,
-                     output_norm=fno_output_norm)  # fmt: skip
-    steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=["fused", "fused_modalities"]))
+    steps.append(KeyedModule(StackModalities(), in_keys=stack_in, out_keys=["modal_stack"]))
+    fuser = _build_fuser(fusion, len(modalities), dim, fno_modes, fno_residual_scale, fno_output_norm, fusion_hidden)
+    fused_key = ("embed", "fused") if placement == "post" else "fused"
+    steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=[fused_key, "fused_modalities"]))
+    if placement == "post":  # one refiner on the mixed vector (refinement after fusion)
+        steps.append(KeyedModule(refiners["fused"], in_keys=[fused_key], out_keys=["fused"]))
     memory = None
     if dnc:
         memory = DNCModule(input_dim=dim, memory_slots=memory_slots, memory_width=memory_width, output_dim=d_out,
@@ -199,6 +221,23 @@ def build_filter_mix_memory(
         steps.append(KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
                                       out_keys=[out_key]))  # fmt: skip
     return steps, refiners, fuser, memory
+
+
+#: initial gate logit of the one refiner after the fuser (``placement: post``; ``model.flow.gate_init.fused``)
+FUSED_GATE_INIT = -3.0
+#: ``model.flow.placement`` choices: refiners before the fuser (the paper's), one after it, none
+PLACEMENTS = ("pre", "post", "off")
+#: ``model.fusion`` choices
+FUSIONS = ("fno", "concat", "mean")
+
+
+def _build_fuser(fusion: str, m: int, d: int, modes: int, residual_scale: float, output_norm: bool,
+                 hidden: int | None) -> nn.Module:
+    if fusion == "fno":
+        return FNOFuser(num_modalities=m, dim=d, modes=modes, residual_scale=residual_scale, output_norm=output_norm)
+    if fusion == "concat":
+        return ConcatFuser(m, d, hidden=hidden)
+    return MeanFuser(m, d)
 
 
 def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.Module]:

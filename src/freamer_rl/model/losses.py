@@ -16,6 +16,7 @@ term then trains only the fuser's own parameters. The recomputation costs one ex
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import torch
@@ -67,6 +68,8 @@ class FreamerAuxLoss(LossModule):
             ``smooth_fuser(E.detach())`` and trains only the fuser; ``None``: on the trunk's ``fused_modalities``
             rows, so the gradient reaches encoders and refiners too (the literal Eq. 6; see the module docstring).
         trunk: optional trunk run on every minibatch before the keys above are read.
+        modalities: the model's modalities (default: the refiners' keys); the contrastive term needs vision and
+            language among them.
 
     Returns (forward): a TensorDict with the weighted scalars ``loss_fm``, ``loss_cl``, ``loss_smooth`` (each only when
     its weight is non-zero and its inputs exist) and detached per-modality diagnostics ``fm_<modality>``.
@@ -92,6 +95,7 @@ class FreamerAuxLoss(LossModule):
         temperature: float = 0.1,
         smooth_fuser: nn.Module | None = None,
         trunk: nn.Module | None = None,
+        modalities: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         self.refiners = refiners
@@ -102,6 +106,8 @@ class FreamerAuxLoss(LossModule):
         self.temperature = temperature
         self.smooth_fuser = smooth_fuser
         self.trunk = trunk
+        # the contrastive pair is read from the Layer-1 embeddings, refined or not (model.flow.placement)
+        self.modalities = list(refiners) if modalities is None else list(modalities)
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: nothing to forward (TorchRL calls this from ``set_keys``)."""
@@ -130,12 +136,12 @@ class FreamerAuxLoss(LossModule):
         if self.trunk is not None:
             td = self.trunk(td.copy())  # recurrent mode is on inside every LossModule.forward
         out: dict[str, torch.Tensor] = {}
-        if self.lambda_fm:
+        if self.lambda_fm and len(self.refiners):
             per_mod = {m: r.cfm_loss(self._embed(td, m), noise_std=self.noise_std) for m, r in self.refiners.items()}
             for m, v in per_mod.items():
                 out[f"fm_{m}"] = v.detach()
             out["loss_fm"] = self.lambda_fm * torch.stack(list(per_mod.values())).mean()
-        if self.lambda_cl and "vision" in self.refiners and "language" in self.refiners:
+        if self.lambda_cl and "vision" in self.modalities and "language" in self.modalities:
             v, l = self._embed(td, "vision"), self._embed(td, "language")
             zero = torch.zeros((), device=v.device)
             out["loss_cl"] = self.lambda_cl * info_nce(v, l, self.temperature) if v.numel() // v.shape[-1] > 1 else zero

@@ -8,6 +8,7 @@ from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention, LanguageEncoder, RewardEncoder, VisionEncoder
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser, StateFNOEncoder
+from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.layers.vector import VectorEncoder
 from freamer_rl.model.factory import FreamerModules
 from freamer_rl.run.params import parameter_rows
@@ -34,9 +35,12 @@ def parameter_table(modules: FreamerModules) -> list[dict]:
         elif isinstance(m, RewardEncoder):
             add("Reward encoder (Conv1D)", m)
         elif isinstance(m, FlowMatchingRefiner):
-            add(f"Flow Matching (x{len(modules.refiners)} modalities)", m)
+            where = "fused vector" if "fused" in modules.refiners else f"x{len(modules.refiners)} modalities"
+            add(f"Flow Matching ({where})", m)
         elif isinstance(m, FNOFuser):
             add("FNO fusion", m)
+        elif isinstance(m, (ConcatFuser, MeanFuser)):
+            add(f"{type(m).__name__[:-5]} fusion", m)
         elif isinstance(m, DNCModule):
             add("DNC memory", m)
     add("Policy + Value heads", modules.actor)

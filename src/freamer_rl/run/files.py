@@ -19,8 +19,11 @@ import time
 from pathlib import Path
 from typing import Any
 
+import tensordict
 import torch
+import torchrl
 import yaml
+from torchrl.record.loggers import get_logger
 
 from freamer_rl.run.checkpoint import atomic_write_text, run_file_errors
 from freamer_rl.errors import FreamerError
@@ -51,9 +54,6 @@ def git_commit() -> dict[str, Any]:
 
 def write_run_files(run_dir: Path, config: dict, resumed_from: Path | None) -> None:
     """``config.yaml`` and ``run_info.json``, each replaced atomically."""
-    import tensordict
-    import torchrl
-
     atomic_write_text(run_dir / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     info = {
         **git_commit(),
@@ -84,8 +84,6 @@ def make_metrics_logger(run_dir: Path, backend: str, config: dict, *, option: st
     logged as hyperparameters. wandb runs offline unless ``WANDB_MODE=online`` and keeps its files in the attempt's
     folder too (``metrics/attempt_NN/wandb``). ``option`` names the config field for the error when the backend's
     package is missing."""
-    from torchrl.record.loggers import get_logger
-
     kwargs: dict[str, Any] = {}
     root = run_dir / "metrics"
     attempt = next_attempt_name(root)

@@ -22,6 +22,7 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from tqdm.auto import tqdm
 
 from freamer_rl.run.checkpoint import run_file_errors
 
@@ -184,8 +185,6 @@ class ProgressReporter:
         self._frames_at_log, self._t_at_log = initial, time.perf_counter()
         self._pbar = None
         if bar and _is_terminal():
-            from tqdm.auto import tqdm
-
             self._pbar = tqdm(total=self.total, initial=min(initial, self.total), unit="frames", desc=desc,
                               dynamic_ncols=True)  # fmt: skip
 

@@ -167,9 +167,11 @@ class Trainer(RunLoop):
             self.modules.refiners,
             lambda_fm=cfg.aux.lambda_fm,
             lambda_cl=cfg.aux.lambda_cl,
-            lambda_smooth=cfg.aux.lambda_smooth,
+            # Eq. A16 smooths the FNO's mixed rows: the concat / mean fusers mix no rows, so it is off with them
+            lambda_smooth=cfg.aux.lambda_smooth if cfg.model.fusion == "fno" else 0.0,
             noise_std=cfg.model.flow.noise_std,
             smooth_fuser=None if cfg.aux.smooth_into_encoders else self.modules.fuser,
+            modalities=self.modules.modalities,
         ).to(self.device)
         # built once: a new buffer per batch costs time and logs TorchRL's storage INFO line every batch
         self._sequence_buffer = sequence_replay_buffer(

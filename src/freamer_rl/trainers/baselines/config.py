@@ -18,6 +18,16 @@ __all__ = ["NetworkConfig", "check_network", "PPOBaselineConfig", "ImpalaSection
            "DreamerConfig", "ARCHITECTURE_FIELDS"]
 
 
+def _size(limit: int) -> Range:
+    """A size bound: an integer in [1, limit]; far larger sizes only end in an allocation failure."""
+    return (lambda v: 1 <= v <= limit, f"in [1, {limit:,}]")
+
+
+#: widths, batch and sequence sizes: generous for a workstation, refused before anything is allocated
+WIDTH_LIMIT, LAYERS_LIMIT, BATCH_LIMIT = 16_384, 64, 65_536
+NETWORK_RANGES: dict[str, Range] = {"network.hidden": _size(WIDTH_LIMIT)}
+
+
 @dataclass
 class NetworkConfig:
     kind: str = "mlp"  # mlp | cnn
@@ -47,7 +57,7 @@ class PPOBaselineConfig(BaseConfig):
     ppo: PPOConfig = field(default_factory=PPOConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
 
-    RANGES: ClassVar[dict[str, Range]] = {**BASE_RANGES, **PPO_RANGES}
+    RANGES: ClassVar[dict[str, Range]] = {**BASE_RANGES, **PPO_RANGES, **NETWORK_RANGES}
 
     def reads_observation(self, key: str) -> bool:
         return key in self.network.observation_keys
@@ -92,6 +102,8 @@ class ImpalaConfig(BaseConfig):
 
     RANGES: ClassVar[dict[str, Range]] = {
         **BASE_RANGES,
+        **NETWORK_RANGES,
+        "impala.frames_per_batch": _size(BATCH_LIMIT * 16),
         "impala.gamma": (UNIT_INTERVAL, "in (0, 1]"),
         "impala.entropy_coeff": (NON_NEGATIVE, ">= 0"),
         "impala.critic_coeff": (NON_NEGATIVE, ">= 0"),
@@ -172,6 +184,10 @@ def _dreamer_ranges() -> dict[str, Range]:
     ranges.update({f"dreamer.{n}": (NON_NEGATIVE, ">= 0") for n in _DREAMER_NON_NEGATIVE})
     ranges.update({f"dreamer.{n}": (UNIT_INTERVAL, "in (0, 1]") for n in ("gamma", "lmbda", "slow_critic_tau")})
     ranges["dreamer.unimix"] = (lambda v: 0 <= v < 1, "in [0, 1)")
+    ranges.update({f"dreamer.{n}": _size(WIDTH_LIMIT) for n in ("deter", "hidden", "cnn_depth")})
+    ranges.update({f"dreamer.{n}": _size(1024) for n in ("stoch_categoricals", "stoch_classes")})
+    ranges["dreamer.mlp_layers"] = _size(LAYERS_LIMIT)
+    ranges.update({f"dreamer.{n}": _size(BATCH_LIMIT) for n in ("batch_size", "sequence_length", "horizon")})
     return ranges
 
 
