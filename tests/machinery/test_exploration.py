@@ -318,4 +318,3 @@ def test_time_penalty_matches_appendix_a5():
     td = TensorDict({"next": {"reward": torch.zeros(1, 145, 1)}}, batch_size=[1, 145])
     mixer(td, success_rate=0.295)
     assert td["next", "shaped_reward"].sum().item() == pytest.approx(-9.39, abs=5e-3)
-

@@ -17,7 +17,7 @@ TINY = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
 def test_minigrid_run_files_and_hyperparameters(tmp_path):
     run = tmp_path / "run"
     Trainer(load_config(TINY, ["logging.progress_bar=false", "optim.lr=7e-4"]), run).train()
-    assert yaml.safe_load((run / "config.yaml").read_text())["ppo"]["lr"] == 7e-4
+    assert yaml.safe_load((run / "config.yaml").read_text())["optim"]["lr"] == 7e-4
     info = json.loads((run / "run_info.json").read_text())
     assert {"commit", "dirty", "torch", "torchrl", "tensordict", "command", "resumed_from"} <= set(info)
     # TorchRL's CSV logger writes log_hparams as "key: value" lines

@@ -13,6 +13,7 @@ Number ranges live beside the sections in tables (:data:`BASE_RANGES`, :data:`PP
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+import math
 from typing import Any, ClassVar
 
 from freamer_rl.config.checks import (
@@ -20,6 +21,28 @@ from freamer_rl.config.checks import (
     run_name_problem,
 )
 from freamer_rl.errors import ConfigError
+
+
+#: kind -> (range check of ``level``, what it must be); integer-only kinds are checked against the key's dtype
+CORRUPTION_KINDS: dict[str, tuple[Any, str]] = {
+    "gaussian": (lambda v: 0 <= v <= 100, "a noise scale in [0, 100] (times the key's running std)"),
+    "salt": (lambda v: 0 <= v <= 1, "a replacement probability in [0, 1]"),
+    "dropout": (lambda v: 0 <= v <= 1, "a drop probability in [0, 1]"),
+    "stale": (lambda v: v >= 1 and float(v).is_integer(), "a whole number of steps >= 1"),
+    "noisy_tv": (lambda v: 0 < v <= 1, "the share of the key in (0, 1]"),
+}
+CORRUPTION_WHEN = ("train", "eval", "both")
+
+
+@dataclass
+class CorruptionConfig:
+    """One ``env.corrupt`` entry: observation ``key`` corrupted by ``kind`` at ``level`` during training, evaluation
+    or both (:mod:`freamer_rl.run.corruption` says what each kind and level mean)."""
+
+    key: str = ""
+    kind: str = "gaussian"
+    level: float = 1.0
+    when: str = "both"
 
 
 @dataclass
@@ -30,6 +53,8 @@ class EnvConfig:
     # Modules imported before the env is built (e.g. a user's package that registers gymnasium ids); gymnasium's
     # ``module:EnvId`` form of ``id`` imports ``module`` the same way.
     imports: list[str] = field(default_factory=list)
+    # modality corruption (freamer_rl.run.corruption), e.g. [{key: pixels, kind: gaussian, level: 1.0, when: eval}]
+    corrupt: list[CorruptionConfig] = field(default_factory=list)
     id: str = "MiniGrid-MultiRoom-N2-S4-v0"
     num_envs: int = 8
     reward_history: int = 8
@@ -157,6 +182,23 @@ def check_base(cfg: BaseConfig) -> None:
         raise ConfigError(f"optim.lr_schedule: expected 'constant' or 'linear', got {cfg.optim.lr_schedule!r}")
     check_collector(cfg.collector)
     check_logging(cfg.logging)
+    check_corruption(cfg.env.corrupt)
+
+
+def check_corruption(entries: list[CorruptionConfig]) -> None:
+    """Every ``env.corrupt`` entry's kind, level and phase (whether the key exists and fits the kind is checked when
+    the env is built)."""
+    for i, c in enumerate(entries):
+        where = f"env.corrupt[{i}]"
+        if not c.key:
+            raise ConfigError(f"{where}.key: name the observation key to corrupt (e.g. pixels, grid, mission_tokens)")
+        if c.kind not in CORRUPTION_KINDS:
+            raise ConfigError(f"{where}.kind: expected one of {', '.join(CORRUPTION_KINDS)}, got {c.kind!r}")
+        ok, expected = CORRUPTION_KINDS[c.kind]
+        if not (math.isfinite(c.level) and ok(c.level)):
+            raise ConfigError(f"{where}.level: {c.kind} needs {expected}, got {c.level!r}")
+        if c.when not in CORRUPTION_WHEN:
+            raise ConfigError(f"{where}.when: expected train, eval or both, got {c.when!r}")
 
 
 def check_ppo_layout(cfg: Any) -> None:

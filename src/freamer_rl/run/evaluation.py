@@ -5,6 +5,7 @@ registry (:func:`freamer_rl.trainers.registry.evaluate_any`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from pathlib import Path
 from typing import Any
@@ -16,6 +17,7 @@ from freamer_rl.config.loader import config_from_dict
 from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import load_checkpoint
+from freamer_rl.run.corruption import corruption_transforms
 from freamer_rl.run.envs import make_batched_env
 
 __all__ = ["read_checkpoint_config", "run_episodes"]
@@ -35,10 +37,16 @@ def read_checkpoint_config(path: Path, schema: type) -> tuple[dict[str, Any], An
 
 @torch.no_grad()
 def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, deterministic: bool = False,
-                 num_envs: int | None = None, seed: int = 12345, max_steps: int = 100_000) -> dict[str, Any]:
-    """``episodes`` complete episodes of ``policy`` in the config's env (every trainer's evaluator uses this)."""
+                 num_envs: int | None = None, seed: int = 12345, max_steps: int = 100_000,
+                 corrupt: list | None = None) -> dict[str, Any]:
+    """``episodes`` complete episodes of ``policy`` in the config's env (every trainer's evaluator uses this).
+
+    The env is corrupted as ``corrupt`` says (``env.corrupt``-style entries), else as the config's ``env.corrupt``
+    entries for evaluation (``when: eval`` or ``both``)."""
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
-    env = make_batched_env(cfg, primers, seed, num_envs=n_envs)
+    entries = [c for c in cfg.env.corrupt if c.when in ("eval", "both")] if corrupt is None else list(corrupt)
+    corruption = corruption_transforms([dataclasses.replace(c, when="eval") for c in entries], "eval")
+    env = make_batched_env(cfg, [*corruption, *primers], seed, num_envs=n_envs)
     success_fn = env_registry.get_adapter(cfg.env.adapter).success
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     try:
@@ -59,6 +67,7 @@ def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, de
         "return_mean": sum(e["return"] for e in chosen) / len(chosen),
         "length_mean": sum(e["length"] for e in chosen) / len(chosen),
         "deterministic": deterministic,
+        "corrupt": [dataclasses.asdict(c) for c in entries],
     }
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from freamer_rl.errors import ConfigError
 from freamer_rl.health.agent import build_agent, parameter_table
 from freamer_rl.health.config import HealthConfig
 from freamer_rl.health.evaluation import evaluate_checkpoint
@@ -21,7 +22,10 @@ def train(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool 
     return run_health(cfg, run_dir, resume=resume, structural=STRUCTURAL)
 
 
-def evaluate(path: str | Path, **options: Any) -> dict[str, Any]:
+def evaluate(path: str | Path, *, corrupt: list | None = None, **options: Any) -> dict[str, Any]:
+    if corrupt:
+        raise ConfigError("--corrupt: the health evaluator does not corrupt observations (its real-env protocol is "
+                          "fixed); corrupt MiniGrid, gym or Crafter runs")  # fmt: skip
     return evaluate_checkpoint(path, **options)
 
 

@@ -62,6 +62,7 @@ from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
 from freamer_rl.model.weights import load_model_state, transfer_weights
+from freamer_rl.run.corruption import corruption_transforms
 from freamer_rl.run.envs import probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
@@ -199,7 +200,7 @@ class Trainer(RunLoop):
         return self.cfg.ppo.frames_per_batch
 
     def _env_transforms(self) -> list:
-        return env_transforms(self.cfg)
+        return [*env_transforms(self.cfg), *corruption_transforms(self.cfg.env.corrupt, "train")]
 
     def _policy(self):
         return self.modules.policy
@@ -379,7 +380,7 @@ def train(cfg: FreamerConfig, run_dir: str | Path | None = None, *, resume: bool
 
 @torch.no_grad()
 def evaluate(checkpoint: str | Path, *, episodes: int = 20, deterministic: bool = False, num_envs: int | None = None,
-             seed: int = 12345, max_steps: int = 100_000) -> dict[str, Any]:
+             seed: int = 12345, max_steps: int = 100_000, corrupt: list | None = None) -> dict[str, Any]:
     """Run ``episodes`` complete episodes with the checkpoint's policy (sampling unless ``deterministic``)."""
     path = Path(checkpoint)
     ckpt, cfg = read_checkpoint_config(path, FreamerConfig)
@@ -388,7 +389,7 @@ def evaluate(checkpoint: str | Path, *, episodes: int = 20, deterministic: bool 
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()
     result = run_episodes(cfg, modules.policy, modules.primers(), episodes=episodes, deterministic=deterministic,
-                          num_envs=num_envs, seed=seed, max_steps=max_steps)  # fmt: skip
+                          num_envs=num_envs, seed=seed, max_steps=max_steps, corrupt=corrupt)  # fmt: skip
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
 
 

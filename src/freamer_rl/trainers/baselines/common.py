@@ -11,6 +11,7 @@ import torch
 from torchrl.modules import ActorValueOperator
 
 from freamer_rl.errors import CheckpointError
+from freamer_rl.run.corruption import corruption_transforms
 from freamer_rl.run.envs import probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop
@@ -51,6 +52,9 @@ class ActorCriticRunLoop(RunLoop):
 
     def _policy(self) -> Any:
         return self.net.get_policy_operator()
+
+    def _env_transforms(self) -> list:
+        return corruption_transforms(self.cfg.env.corrupt, "train")
 
     def _current_lr(self) -> float:
         """``optim.lr`` after its schedule, set on the optimiser."""

@@ -46,6 +46,7 @@ from torchrl.objectives import DreamerV3ActorLoss, DreamerV3ModelLoss, DreamerV3
 from torchrl.objectives.utils import ValueEstimators
 
 from freamer_rl.errors import CheckpointError, ConfigError
+from freamer_rl.run.corruption import corruption_transforms
 from freamer_rl.run.envs import probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
@@ -489,6 +490,9 @@ class DreamerTrainer(RunLoop):
     def _primers(self) -> list:
         return [self.nets.primer()]
 
+    def _env_transforms(self) -> list:
+        return corruption_transforms(self.cfg.env.corrupt, "train")
+
     def _learn(self, data) -> dict[str, float]:
         d = self.cfg.dreamer
         self.replay.extend(data)
@@ -524,7 +528,7 @@ class DreamerTrainer(RunLoop):
 
 @torch.no_grad()
 def evaluate(path, *, episodes: int = 20, deterministic: bool = False, num_envs: int | None = None,
-                        seed: int = 12345) -> dict:
+                        seed: int = 12345, corrupt: list | None = None) -> dict:
     """Episodes of a DreamerV3 checkpoint's collection policy (online posterior + actor) in its config's env.
 
     ``deterministic``: the actor takes its most likely action; the posterior latent is still sampled (as in
@@ -539,7 +543,7 @@ def evaluate(path, *, episodes: int = 20, deterministic: bool = False, num_envs:
         raise CheckpointError(f"checkpoint {path}: weights do not fit the networks of its own config") from err
     nets.eval()
     result = run_episodes(cfg, nets.policy, [nets.primer()], episodes=episodes, deterministic=deterministic,
-                          num_envs=num_envs, seed=seed)  # fmt: skip
+                          num_envs=num_envs, seed=seed, corrupt=corrupt)  # fmt: skip
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
 
 

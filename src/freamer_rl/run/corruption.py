@@ -1,0 +1,201 @@
+"""Modality corruption as TorchRL transforms: noise, token replacement, dropout, a stale sensor, a noisy TV.
+
+Each transform corrupts one observation key of any TorchRL env, for any policy (FreamerV1, the baselines, a user's
+own), so "does filtering before mixing keep a policy working when one modality is noisy?" can be asked on every env.
+Recipes configure them (``env.corrupt: [{key: pixels, kind: gaussian, level: 1.0, when: eval}]``, checked with the
+field named); :func:`corruption_transforms` builds the list a trainer (``when`` train) or an evaluator (eval) appends.
+
+Kinds (``level`` means):
+
+* ``gaussian`` -- ``x + level * s * N(0, 1)`` with ``s`` the key's running std (all entries, updated from the clean
+  values), so ``level`` means the same on pixels and on vectors; uint8 values are rounded and clipped to 0..255.
+* ``salt`` -- integer keys (grid indices, mission tokens): each entry is replaced with probability ``level`` by a
+  uniform random value of the key's spec range (salt-and-pepper / random-token replacement).
+* ``dropout`` -- with probability ``level`` per env and step the whole key is zeroed; ``<key>_present`` (float
+  ``[*B, 1]``, 1 = kept) is written beside it for a policy that wants to read it.
+* ``stale`` -- a frozen sensor: the value is refreshed every ``level`` steps and held in between (per env; an
+  episode start refreshes it).
+* ``noisy_tv`` -- a distractor inside the key: a share ``level`` of it (a top-left square of an image, the last
+  entries of a vector) shows fresh noise every step (uniform over the range for integers, the running mean and std
+  for floats).
+
+Randomness comes from torch's global generator, so a seeded run corrupts the same way. Reset and step outputs are
+corrupted alike; a partial reset changes only the state of the envs it resets.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from tensordict import TensorDictBase
+from tensordict.utils import NestedKey
+from torchrl.data import Unbounded
+from torchrl.envs.transforms import Transform
+
+from freamer_rl.config.sections import CORRUPTION_KINDS
+from freamer_rl.errors import ConfigError
+
+__all__ = ["CORRUPTION_KINDS", "ModalityCorruption", "corruption_transforms"]
+
+_INTEGER_ONLY = {"salt"}
+_FLOAT_OR_PIXELS = {"gaussian"}
+
+
+def _is_integer(dtype: torch.dtype) -> bool:
+    return not dtype.is_floating_point and dtype != torch.bool
+
+
+def _spec_range(spec, where: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Element-wise (low, high) of an integer spec (broadcastable to its shape): Categorical ``n``, Bounded ``low`` /
+    ``high`` (MiniGrid's grid has other bounds per channel), uint8 0..255."""
+    space = getattr(spec, "space", None)
+    n = getattr(space, "n", None)
+    if n is not None:
+        return torch.tensor(0), torch.tensor(int(n) - 1)
+    low, high = getattr(space, "low", None), getattr(space, "high", None)
+    if low is not None and high is not None:
+        return torch.as_tensor(low).long(), torch.as_tensor(high).long()
+    if spec.dtype == torch.uint8:
+        return torch.tensor(0), torch.tensor(255)
+    raise ConfigError(f"{where}.key: {spec.dtype} observation without bounds: no range to draw replacement values from")
+
+
+def _draw(low: torch.Tensor, high: torch.Tensor, shape: torch.Size, like: torch.Tensor) -> torch.Tensor:
+    """Uniform integers in [low, high] element-wise, of ``shape`` (bounds broadcast from the right)."""
+    low, high = low.to(like.device), high.to(like.device)
+    u = torch.rand(shape, device=like.device)
+    return (low + torch.floor(u * (high - low + 1)).long().clamp(max=high - low)).to(like.dtype)
+
+
+class ModalityCorruption(Transform):
+    """Corrupt observation ``key`` with ``kind`` at ``level`` (see the module docstring); ``where`` names the recipe
+    entry in errors (``env.corrupt[0]``)."""
+
+    def __init__(self, key: NestedKey, kind: str, level: float, where: str = "env.corrupt") -> None:
+        if kind not in CORRUPTION_KINDS:
+            raise ConfigError(f"{where}.kind: expected one of {', '.join(CORRUPTION_KINDS)}, got {kind!r}")
+        ok, expected = CORRUPTION_KINDS[kind]
+        if not (isinstance(level, (int, float)) and math.isfinite(level) and ok(level)):
+            raise ConfigError(f"{where}.level: {kind} needs {expected}, got {level!r}")
+        super().__init__(in_keys=[key], out_keys=[key])
+        self.key, self.kind, self.level, self.where = key, kind, float(level), where
+        self.present_key = f"{key}_present" if isinstance(key, str) else (*key[:-1], f"{key[-1]}_present")
+        self._range: tuple[torch.Tensor, torch.Tensor] | None = None
+        self._stats = torch.zeros(3, dtype=torch.float64)  # count, mean, M2 of the clean values (Welford)
+        self._held: torch.Tensor | None = None
+        self._age: torch.Tensor | None = None
+
+    # -- specs ---------------------------------------------------------------------------------------------------
+    def transform_observation_spec(self, observation_spec):
+        if self.key not in observation_spec.keys(True):
+            known = ", ".join(str(k) for k in observation_spec.keys(True, True))
+            raise ConfigError(f"{self.where}.key: the env has no observation {self.key!r} (it has {known})")
+        spec = observation_spec[self.key]
+        if self.kind in _INTEGER_ONLY and not _is_integer(spec.dtype):
+            raise ConfigError(f"{self.where}.kind: {self.kind} replaces integer entries, but {self.key!r} is "
+                              f"{spec.dtype}; use gaussian for float keys")  # fmt: skip
+        if self.kind in _FLOAT_OR_PIXELS and _is_integer(spec.dtype) and spec.dtype != torch.uint8:
+            raise ConfigError(f"{self.where}.kind: {self.kind} adds noise to float or uint8 pixel keys, but "
+                              f"{self.key!r} holds {spec.dtype} indices; use salt")  # fmt: skip
+        if _is_integer(spec.dtype):
+            self._range = _spec_range(spec, self.where)
+        if self.kind == "dropout":
+            observation_spec[self.present_key] = Unbounded((*spec.shape[: len(observation_spec.shape)], 1),
+                                                           device=spec.device, dtype=torch.float32)  # fmt: skip
+        return observation_spec
+
+    # -- statistics ----------------------------------------------------------------------------------------------
+    def _update_stats(self, x: torch.Tensor) -> None:
+        x = x.detach().double().reshape(-1)
+        n, mean, m2 = self._stats.tolist()
+        k = x.numel()
+        if not k:
+            return
+        bm, bv = float(x.mean()), float(x.var(unbiased=False))
+        tot = n + k
+        delta = bm - mean
+        self._stats = torch.tensor([tot, mean + delta * k / tot, m2 + bv * k + delta**2 * n * k / tot],
+                                   dtype=torch.float64)  # fmt: skip
+
+    @property
+    def running_std(self) -> float:
+        n, _, m2 = self._stats.tolist()
+        return math.sqrt(m2 / n) if n > 0 else 0.0
+
+    # -- corruption ----------------------------------------------------------------------------------------------
+    def _corrupt(self, td: TensorDictBase, update: torch.Tensor | None) -> TensorDictBase:
+        """Corrupt ``td[key]``; ``update`` [*B] marks the envs whose per-env state may change (None: all)."""
+        x = td.get(self.key, None)
+        if x is None:
+            raise KeyError(f"{self.where}: observation {self.key!r} missing from the env's output")
+        batch = td.batch_size
+        if update is None:
+            update = torch.ones(batch, dtype=torch.bool, device=x.device)
+        self._update_stats(x[update])
+        if self.kind == "dropout":
+            keep = torch.rand(batch, device=x.device) >= self.level
+            td.set(self.present_key, keep.to(torch.float32).unsqueeze(-1))
+            td.set(self.key, x * keep.reshape((*batch, *([1] * (x.ndim - len(batch))))).to(x.dtype))
+        elif self.kind == "stale":
+            td.set(self.key, self._stale(x, update, len(batch)))
+        else:
+            td.set(self.key, getattr(self, f"_{self.kind}")(x, len(batch)))
+        return td
+
+    def _gaussian(self, x: torch.Tensor, nb: int) -> torch.Tensor:
+        noisy = x.float() + self.level * self.running_std * torch.randn(x.shape, device=x.device)
+        return noisy.round().clamp(0, 255).to(x.dtype) if x.dtype == torch.uint8 else noisy.to(x.dtype)
+
+    def _salt(self, x: torch.Tensor, nb: int) -> torch.Tensor:
+        draw = _draw(*self._range, x.shape, x)
+        return torch.where(torch.rand(x.shape, device=x.device) < self.level, draw, x)
+
+    def _noisy_tv(self, x: torch.Tensor, nb: int) -> torch.Tensor:
+        out = x.clone()
+        if self._range is not None:
+            noise = _draw(*self._range, x.shape, x)
+        else:
+            n, mean, m2 = self._stats.tolist()
+            noise = (mean + math.sqrt(m2 / n) * torch.randn(x.shape, device=x.device)).to(x.dtype)
+        event = x.shape[nb:]
+        if len(event) == 3:  # an image [H, W, C]: a top-left square covering `level` of its area
+            h, w = max(1, round(math.sqrt(self.level) * event[0])), max(1, round(math.sqrt(self.level) * event[1]))
+            out[..., :h, :w, :] = noise[..., :h, :w, :]
+        else:  # a vector: its last ceil(level * n) entries
+            flat, nflat = out.reshape((*x.shape[:nb], -1)), noise.reshape((*x.shape[:nb], -1))
+            k = math.ceil(self.level * flat.shape[-1])
+            flat[..., -k:] = nflat[..., -k:]
+            out = flat.reshape(x.shape)
+        return out
+
+    def _stale(self, x: torch.Tensor, update: torch.Tensor, nb: int) -> torch.Tensor:
+        if self._held is None or self._held.shape != x.shape:
+            self._held, self._age = x.clone(), torch.zeros(x.shape[:nb], dtype=torch.long, device=x.device)
+        refresh = update & (self._age % int(self.level) == 0)
+        expand = refresh.reshape((*refresh.shape, *([1] * (x.ndim - nb))))
+        self._held = torch.where(expand, x, self._held)
+        self._age = torch.where(update, self._age + 1, self._age)
+        return self._held.clone()
+
+    # -- TorchRL hooks ---------------------------------------------------------------------------------------------
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return self._corrupt(next_tensordict, None)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        mask = tensordict.get("_reset", None) if tensordict is not None else None
+        update = None if mask is None else mask.reshape(tuple(tensordict_reset.batch_size))
+        if self._age is not None:  # an episode start refreshes a stale sensor
+            self._age = torch.where(update if update is not None else torch.ones_like(self._age, dtype=torch.bool),
+                                    torch.zeros_like(self._age), self._age)  # fmt: skip
+        return self._corrupt(tensordict_reset, update)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self._corrupt(tensordict, None)
+
+
+def corruption_transforms(entries: list, phase: str) -> list[ModalityCorruption]:
+    """The ``env.corrupt`` entries that apply in ``phase`` (``train`` or ``eval``) as transforms, in order."""
+    return [ModalityCorruption(e.key, e.kind, e.level, where=f"env.corrupt[{i}]")
+            for i, e in enumerate(entries) if e.when in (phase, "both")]  # fmt: skip

@@ -1,0 +1,132 @@
+"""Modality corruption transforms (freamer_rl.run.corruption): each kind on a real env, against closed forms where
+there is one, configured from recipes for training and evaluation, for FreamerV1 and the PPO baseline."""
+
+from pathlib import Path
+
+import pytest
+import torch
+from torchrl.envs import Compose, InitTracker, TransformedEnv
+from torchrl.envs.utils import check_env_specs
+
+from freamer_rl.config.sections import CorruptionConfig
+from freamer_rl.errors import ConfigError
+from freamer_rl.run.corruption import ModalityCorruption, corruption_transforms
+from freamer_rl.trainers.registry import TRAINERS, load_config
+from freamer_rl_envs.minigrid import make_minigrid_env
+
+ROOT = Path(__file__).resolve().parents[2]
+TINY = ROOT / "recipes" / "tiny.yaml"
+
+
+def _env(*transforms, pixels=False):
+    base = make_minigrid_env("MiniGrid-Empty-5x5-v0", pixels=pixels, include_mission=False)
+    return TransformedEnv(base, Compose(InitTracker(), *transforms))
+
+
+@pytest.mark.parametrize("kind, key, level, pixels", [
+    ("gaussian", "pixels", 1.0, True), ("gaussian", "reward_history", 0.5, False), ("salt", "grid", 0.3, False),
+    ("dropout", "grid", 0.5, False), ("stale", "grid", 3, False), ("noisy_tv", "pixels", 0.25, True),
+    ("salt", "mission_tokens", 0.5, False),
+])  # fmt: skip
+def test_every_kind_keeps_the_env_specs(kind, key, level, pixels):
+    torch.manual_seed(0)
+    env = _env(ModalityCorruption(key, kind, level), pixels=pixels)
+    check_env_specs(env)
+    env.close()
+
+
+def test_salt_replaces_the_given_share_within_the_spec_range():
+    torch.manual_seed(0)
+    clean = _env().rollout(200, break_when_any_done=False)["grid"]
+    torch.manual_seed(0)
+    env = _env(ModalityCorruption("grid", "salt", 0.3))
+    spec = env.observation_spec["grid"]
+    noisy = env.rollout(200, break_when_any_done=False)["grid"]
+    changed = (noisy != clean).float().mean()  # a replacement may redraw the same value: a bit under 0.3
+    assert 0.2 < changed < 0.31, changed
+    assert spec.is_in(noisy)
+
+
+def test_gaussian_scale_is_relative_to_the_running_std():
+    torch.manual_seed(0)
+    t = ModalityCorruption("x", "gaussian", 2.0)
+    x = torch.randn(20_000, 4) * 5.0
+    td = t._corrupt(__import__("tensordict").TensorDict({"x": x}, batch_size=[20_000]), None)
+    assert abs(t.running_std - 5.0) < 0.1
+    # noise std = level * running std = 10
+    assert abs(float((td["x"] - x).std()) - 10.0) < 0.3
+
+
+def test_dropout_zeroes_the_whole_key_and_marks_it():
+    torch.manual_seed(0)
+    data = _env(ModalityCorruption("grid", "dropout", 0.5)).rollout(300, break_when_any_done=False)
+    present = data["grid_present"].reshape(-1).bool()
+    assert 0.4 < present.float().mean() < 0.6
+    assert (data["grid"][~present] == 0).all() and (data["grid"][present].sum((-1, -2, -3)) > 0).all()
+
+
+def test_stale_sensor_holds_the_value_for_k_steps():
+    torch.manual_seed(0)
+    clean = _env().rollout(12, break_when_any_done=False)
+    torch.manual_seed(0)
+    stale = _env(ModalityCorruption("direction", "stale", 3)).rollout(12, break_when_any_done=False)
+    for t in range(12):  # refreshed at t = 0, 3, 6, 9 (the reset is step 0), held in between
+        assert int(stale["direction"][t]) == int(clean["direction"][3 * (t // 3)]), t
+
+
+def test_noisy_tv_covers_the_share_of_the_image():
+    torch.manual_seed(0)
+    clean = _env(pixels=True).rollout(5, break_when_any_done=False)["pixels"]
+    torch.manual_seed(0)
+    tv = _env(ModalityCorruption("pixels", "noisy_tv", 0.25), pixels=True).rollout(5, break_when_any_done=False)
+    diff = (tv["pixels"] != clean).any(-1)  # [T, 56, 56]
+    assert diff[:, 28:, :].sum() == 0 and diff[:, :, 28:].sum() == 0  # only the top-left 28x28 square
+    assert diff[:, :28, :28].float().mean() > 0.9
+
+
+@pytest.mark.parametrize("entry, message", [
+    ({"key": "lidar", "kind": "gaussian"}, r"env.corrupt\[0\].key: the env has no observation 'lidar'"),
+    ({"key": "grid", "kind": "gaussian"}, r"env.corrupt\[0\].kind: gaussian adds noise to float or uint8"),
+    ({"key": "reward_history", "kind": "salt", "level": 0.1}, r"env.corrupt\[0\].kind: salt replaces integer"),
+])  # fmt: skip
+def test_a_corruption_the_env_cannot_take_is_one_line(entry, message):
+    t = corruption_transforms([CorruptionConfig(**entry)], "train")
+    with pytest.raises(ConfigError, match=message):
+        _env(*t).observation_spec
+
+
+@pytest.mark.parametrize("override, message", [
+    ("env.corrupt=[{key: grid, kind: blur}]", r"env.corrupt\[0\].kind: expected one of gaussian"),
+    ("env.corrupt=[{key: grid, kind: salt, level: 1.5}]", r"env.corrupt\[0\].level: salt needs a replacement"),
+    ("env.corrupt=[{key: grid, kind: stale, level: 2.5}]", r"env.corrupt\[0\].level: stale needs a whole number"),
+    ("env.corrupt=[{key: grid, kind: salt, when: always}]", r"env.corrupt\[0\].when: expected train, eval or both"),
+    ("env.corrupt=[{kind: salt}]", r"env.corrupt\[0\].key: name the observation key"),
+])  # fmt: skip
+def test_bad_recipe_entries_are_one_line(override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(TINY, [override])
+
+
+def test_phases_pick_their_entries():
+    entries = [CorruptionConfig("grid", "salt", 0.1, "train"), CorruptionConfig("grid", "salt", 0.2, "eval"),
+               CorruptionConfig("direction", "stale", 2, "both")]  # fmt: skip
+    assert [t.level for t in corruption_transforms(entries, "train")] == [0.1, 2.0]
+    assert [t.level for t in corruption_transforms(entries, "eval")] == [0.2, 2.0]
+
+
+@pytest.mark.parametrize("trainer, recipe, tiny", [
+    ("minigrid_ppo", TINY, ["run.total_frames=128"]),
+    ("ppo_baseline", ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
+     ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32",
+      "network.hidden=16", "run.total_frames=64", "logging.progress_bar=false"]),
+])  # fmt: skip
+def test_trains_corrupted_and_evaluates_corrupted(trainer, recipe, tiny, tmp_path):
+    cfg = load_config(recipe, [*tiny, "env.corrupt=[{key: grid, kind: dropout, level: 1.0, when: both}]"])
+    spec = TRAINERS[trainer]
+    spec.train(cfg, tmp_path / "run")
+    ckpt = sorted((tmp_path / "run" / "checkpoints").glob("checkpoint_*.pt"))[-1]
+    clean = spec.evaluate(ckpt, episodes=2, corrupt=[])
+    dropped = spec.evaluate(ckpt, episodes=2)  # the recipe's entry applies at evaluation too
+    assert clean["corrupt"] == [] and dropped["corrupt"][0]["kind"] == "dropout"
+    noisy = spec.evaluate(ckpt, episodes=2, corrupt=[CorruptionConfig("grid", "salt", 0.5, "eval")])
+    assert noisy["corrupt"][0]["level"] == 0.5
