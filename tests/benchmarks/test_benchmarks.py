@@ -10,9 +10,11 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 from freamer_rl.experiments.report import RunRecord, write_report
 from freamer_rl.experiments.suite import describe, load_suite, plan_suite, run_suite
+from freamer_rl.trainers.baselines.common import build_network
 from freamer_rl.trainers.registry import load_recipe
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -51,6 +53,27 @@ def test_gym_ppo_mlp_recipe_differs_from_freamer_only_in_the_network(task):
     assert {f: getattr(mlp.ppo, f) for f in fields} == {f: getattr(freamer.ppo, f) for f in fields}
     assert vars(mlp.optim) == vars(freamer.optim)
     assert mlp.run.total_frames == freamer.run.total_frames
+
+
+@pytest.mark.parametrize("recipe,init", [("ppo_mlp_n2s4", "torch_default"), ("ppo_mlp_cartpole", "torch_default"),
+                                         ("impala_n2s4", "orthogonal")])  # fmt: skip
+def test_baseline_recipes_build_the_init_they_name(recipe, init):
+    """PyTorch's init: every Linear weight and bias inside U(+-1/sqrt(fan_in)), biases not zero; orthogonal: zero
+    biases and orthogonal rows scaled by the gain (the encoder's sqrt 2)."""
+    _, cfg = load_recipe(ROOT / "recipes" / "baselines" / f"{recipe}.yaml")
+    net = build_network(cfg)
+    linears = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
+    assert len(linears) == 6  # two encoders (shared: false), two layers per head
+    for layer in linears:
+        bound = layer.in_features**-0.5
+        if init == "torch_default":
+            assert layer.weight.abs().max() <= bound and layer.bias.abs().max() <= bound
+            assert layer.bias.abs().max() > 0
+        else:
+            assert layer.bias.abs().max() == 0
+    if init == "orthogonal":
+        w = linears[0].weight.detach()  # [hidden, obs] with hidden < obs: orthogonal rows
+        torch.testing.assert_close(w @ w.T, 2.0 * torch.eye(w.shape[0]), atol=1e-4, rtol=0)
 
 
 def _suite_file(tmp_path: Path, body: str) -> Path:

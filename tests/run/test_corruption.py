@@ -130,3 +130,20 @@ def test_trains_corrupted_and_evaluates_corrupted(trainer, recipe, tiny, tmp_pat
     assert clean["corrupt"] == [] and dropped["corrupt"][0]["kind"] == "dropout"
     noisy = spec.evaluate(ckpt, episodes=2, corrupt=[CorruptionConfig("grid", "salt", 0.5, "eval")])
     assert noisy["corrupt"][0]["level"] == 0.5
+
+
+def test_freamer_eval_reports_gates_and_refiner_displacement(tmp_path):
+    """Gate telemetry: sigma(alpha) and ||e_hat - e|| / ||e|| per modality, in progress.csv and the eval result."""
+    import csv
+
+    cfg = load_config(TINY, ["run.total_frames=128"])
+    TRAINERS["minigrid_ppo"].train(cfg, tmp_path / "run")
+    rows = list(csv.DictReader((tmp_path / "run" / "progress.csv").open()))
+    assert {f"fm_displacement_{m}" for m in cfg.model.modalities} <= set(rows[-1])
+    ckpt = sorted((tmp_path / "run" / "checkpoints").glob("checkpoint_*.pt"))[-1]
+    result = TRAINERS["minigrid_ppo"].evaluate(ckpt, episodes=2)
+    for m in cfg.model.modalities:
+        # the refiner moves its input (a gate near sigma(-3) = 0.047: by a few percent of its length)
+        assert 0.001 < result[f"fm_displacement_{m}"] < 0.5
+        # the evaluated gates are the trained ones (the last progress row is written after the last update)
+        assert abs(result[f"gate_{m}"] - float(rows[-1][f"gate_{m}"])) < 1e-6

@@ -82,6 +82,20 @@ class FreamerModules:
         """Per-modality residual gate sigma(alpha_m) (Eq. 3)."""
         return {m: float(r.gate.detach()) for m, r in self.refiners.items()}
 
+    def refiner_keys(self) -> dict[str, tuple[NestedKey, NestedKey]]:
+        """``{m: (input key, output key)}`` of each refiner: ``("embed", m) -> ("refined", m)`` before the fuser,
+        ``("embed", "fused") -> "fused"`` after it."""
+        return {m: (("embed", m), "fused" if m == "fused" else ("refined", m)) for m in self.refiners}
+
+    def displacement(self, td) -> dict[str, torch.Tensor]:
+        """How far each refiner moved its input in a trunk pass written to ``td``: the mean over rows of
+        ``||e_hat - e|| / ||e||`` (0: the filter is off; 1: it moved the embedding by its own length)."""
+        out = {}
+        for m, (src, dst) in self.refiner_keys().items():
+            e, e_hat = td.get(src), td.get(dst)
+            out[m] = ((e_hat - e).norm(dim=-1) / e.norm(dim=-1).clamp_min(1e-8)).mean().detach()
+        return out
+
 
 def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, env_name: str = "the env") -> FreamerModules:
     """Assemble the FreamerV1 TensorDictSequential from unbatched env specs and a model config.

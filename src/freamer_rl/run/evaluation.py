@@ -19,6 +19,7 @@ from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import load_checkpoint
 from freamer_rl.run.corruption import corruption_transforms
 from freamer_rl.run.envs import make_batched_env
+from freamer_rl.run.metrics import LogMeans
 
 __all__ = ["read_checkpoint_config", "run_episodes"]
 
@@ -38,11 +39,12 @@ def read_checkpoint_config(path: Path, schema: type) -> tuple[dict[str, Any], An
 @torch.no_grad()
 def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, deterministic: bool = False,
                  num_envs: int | None = None, seed: int = 12345, max_steps: int = 100_000,
-                 corrupt: list | None = None) -> dict[str, Any]:
+                 corrupt: list | None = None, step_metrics: Any = None) -> dict[str, Any]:
     """``episodes`` complete episodes of ``policy`` in the config's env (every trainer's evaluator uses this).
 
     The env is corrupted as ``corrupt`` says (``env.corrupt``-style entries), else as the config's ``env.corrupt``
-    entries for evaluation (``when: eval`` or ``both``)."""
+    entries for evaluation (``when: eval`` or ``both``). ``step_metrics(td) -> {name: scalar tensor}`` is called on
+    every step the policy wrote (e.g. FreamerV1's refiner displacement); the result holds the means over steps."""
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
     entries = [c for c in cfg.env.corrupt if c.when in ("eval", "both")] if corrupt is None else list(corrupt)
     corruption = corruption_transforms([dataclasses.replace(c, when="eval") for c in entries], "eval")
@@ -51,7 +53,8 @@ def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, de
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     try:
         with set_exploration_type(mode):
-            per_env = _episodes_per_env(env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps)
+            per_env = _episodes_per_env(env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps,
+                                        step_metrics, means := LogMeans())  # fmt: skip
     finally:
         env.close()
     # episode k of every env before episode k + 1 of any: choosing by finishing order would favour short episodes
@@ -68,16 +71,20 @@ def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, de
         "length_mean": sum(e["length"] for e in chosen) / len(chosen),
         "deterministic": deterministic,
         "corrupt": [dataclasses.asdict(c) for c in entries],
+        **means.means(),
     }
 
 
-def _episodes_per_env(env, policy, n_envs: int, quota: int, success_fn, max_steps: int) -> list[list[dict]]:
+def _episodes_per_env(env, policy, n_envs: int, quota: int, success_fn, max_steps: int, step_metrics=None,
+                      means: LogMeans | None = None) -> list[list[dict]]:
     """The first ``quota`` episodes of each of the ``n_envs`` envs: ``{"return", "length", "success"}`` each
     (``success`` None without a success rule)."""
     per_env: list[list[dict]] = [[] for _ in range(n_envs)]
     td = env.reset()
     for _ in range(max_steps):
         td = policy(td)
+        if step_metrics is not None:
+            means.add(step_metrics(td))
         td, td_next = env.step_and_maybe_reset(td)
         nxt = td["next"].reshape(n_envs)
         done = nxt["done"].reshape(n_envs)

@@ -332,6 +332,7 @@ class Trainer(RunLoop):
                 if self.ogm is not None:  # each modality's FM-loss convergence drives its coefficient
                     self.ogm.observe({m: aux_td[f"fm_{m}"] for m in self.modules.refiners})
                 means.add({
+                    **{f"fm_displacement_{m}": v for m, v in self.modules.displacement(mb).items()},
                     "loss_total": total,
                     "grad_norm": grad_norm,
                     **{k: v for k, v in loss_td.items() if v.numel() == 1},
@@ -389,7 +390,9 @@ def evaluate(checkpoint: str | Path, *, episodes: int = 20, deterministic: bool 
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()
     result = run_episodes(cfg, modules.policy, modules.primers(), episodes=episodes, deterministic=deterministic,
-                          num_envs=num_envs, seed=seed, max_steps=max_steps, corrupt=corrupt)  # fmt: skip
+                          num_envs=num_envs, seed=seed, max_steps=max_steps, corrupt=corrupt,
+                          step_metrics=lambda td: {f"fm_displacement_{m}": v for m, v in modules.displacement(td).items()})
+    result.update({f"gate_{m}": g for m, g in modules.gates().items()})
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
 
 

@@ -14,7 +14,7 @@ from freamer_rl.config.sections import (
 )
 from freamer_rl.errors import ConfigError
 
-__all__ = ["NetworkConfig", "check_network", "PPOBaselineConfig", "ImpalaSection", "ImpalaConfig", "DreamerSection",
+__all__ = ["NETWORK_INITS", "NetworkConfig", "network_init", "check_network", "PPOBaselineConfig", "ImpalaSection", "ImpalaConfig", "DreamerSection",
            "DreamerConfig", "ARCHITECTURE_FIELDS"]
 
 
@@ -28,6 +28,16 @@ WIDTH_LIMIT, LAYERS_LIMIT, BATCH_LIMIT = 16_384, 64, 65_536
 NETWORK_RANGES: dict[str, Range] = {"network.hidden": _size(WIDTH_LIMIT)}
 
 
+NETWORK_INITS = ("auto", "orthogonal", "torch_default")
+
+
+def network_init(net: "NetworkConfig") -> str:
+    """``network.init`` with ``auto`` resolved: ``torch_default`` for ``kind: mlp``, ``orthogonal`` for ``cnn``."""
+    if net.init != "auto":
+        return net.init
+    return "torch_default" if net.kind == "mlp" else "orthogonal"
+
+
 @dataclass
 class NetworkConfig:
     kind: str = "mlp"  # mlp | cnn
@@ -35,6 +45,10 @@ class NetworkConfig:
     hidden: int = 256  # width of the encoder's last layer and of the heads' hidden layer
     shared: bool = False  # one trunk for actor and critic (true) or one encoder each (false)
     cnn_channels: list[int] = field(default_factory=lambda: [32, 64, 64])
+    # weight init of the Linear layers: orthogonal (gain sqrt 2, policy output 0.01, critic output 1, zero biases) or
+    # PyTorch's own U(+-1/sqrt(fan_in)); auto: torch_default for kind mlp, orthogonal for kind cnn. On N2-S4 the
+    # PPO-MLP reaches 95% in ~1,016 episodes with torch_default, ~1,604 with orthogonal (3 seeds; README baselines)
+    init: str = "auto"
 
 
 def check_network(net: NetworkConfig) -> None:
@@ -45,6 +59,8 @@ def check_network(net: NetworkConfig) -> None:
         raise ConfigError("network.observation_keys: expected at least one observation key, got []")
     if len(set(net.observation_keys)) != len(net.observation_keys):
         raise ConfigError(f"network.observation_keys: duplicate keys in {net.observation_keys}")
+    if net.init not in NETWORK_INITS:
+        raise ConfigError(f"network.init: expected one of {', '.join(NETWORK_INITS)}, got {net.init!r}")
     if len(net.cnn_channels) != 3 or min(net.cnn_channels) < 1:
         raise ConfigError(f"network.cnn_channels: expected 3 positive ints (one per conv layer), got "
                           f"{net.cnn_channels}")

@@ -5,7 +5,10 @@ is FlatObsWrapper's observation without the mission characters, which are consta
 the one image key (uint8 ``[H, W, C]``, scaled to [0, 1]) through the Nature-DQN conv stack, the other keys flattened
 beside its features. ``shared: false`` gives the actor and the critic their own encoder (TorchRL's PPO-MLP);
 ``shared: true`` one trunk for both (the usual PPO-CNN). Either way the pieces are an ``ActorValueOperator``:
-``common`` writes ``hidden_pi`` / ``hidden_v``, the heads of :mod:`freamer_rl.model.heads` read them.
+``common`` writes ``hidden_pi`` / ``hidden_v``, the heads of :mod:`freamer_rl.model.heads` read them. ``init``
+(:func:`~freamer_rl.trainers.baselines.config.network_init`): the heads' and the encoder's orthogonal init, or every
+Linear layer reset to PyTorch's own init (what ``torchrl.modules.MLP`` gives a TorchRL user; the stronger PPO-MLP on
+MiniGrid, README "TorchRL baselines").
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import ActorValueOperator
 
-from freamer_rl.trainers.baselines.config import NetworkConfig
+from freamer_rl.trainers.baselines.config import NetworkConfig, network_init
 from freamer_rl.errors import EnvSetupError
 from freamer_rl.model.heads import build_actor, build_critic
 
-__all__ = ["ObservationEncoder", "ActorCriticTrunk", "build_actor_critic"]
+__all__ = ["ObservationEncoder", "ActorCriticTrunk", "build_actor_critic", "reset_linear_layers"]
 
 PI, V = "hidden_pi", "hidden_v"
 
@@ -82,6 +85,13 @@ def _image_index(keys: list[str], shapes: list[tuple[int, ...]]) -> int:
     return images[0]
 
 
+def reset_linear_layers(module: nn.Module) -> None:
+    """Every ``nn.Linear`` of ``module`` back to PyTorch's init: weights and biases U(+-1/sqrt(fan_in))."""
+    for layer in module.modules():
+        if isinstance(layer, nn.Linear):
+            layer.reset_parameters()
+
+
 def build_actor_critic(observation_spec, action_spec, net: NetworkConfig) -> ActorValueOperator:
     """The baseline's ``ActorValueOperator`` for unbatched env specs; the action head follows the action spec."""
     missing = [k for k in net.observation_keys if k not in observation_spec.keys()]
@@ -95,4 +105,7 @@ def build_actor_critic(observation_spec, action_spec, net: NetworkConfig) -> Act
     common = TensorDictModule(trunk, in_keys=list(net.observation_keys), out_keys=[PI, V])
     actor = build_actor(action_spec, net.hidden, net.hidden, in_key=PI)
     critic = build_critic(net.hidden, net.hidden, in_key=V)
+    if network_init(net) == "torch_default":
+        for part in (trunk, actor, critic):
+            reset_linear_layers(part)
     return ActorValueOperator(common, actor, critic)
