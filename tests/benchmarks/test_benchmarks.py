@@ -59,7 +59,7 @@ def test_gym_ppo_mlp_recipe_differs_from_freamer_only_in_the_network(task):
                                          ("impala_n2s4", "orthogonal")])  # fmt: skip
 def test_baseline_recipes_build_the_init_they_name(recipe, init):
     """PyTorch's init: every Linear weight and bias inside U(+-1/sqrt(fan_in)), biases not zero; orthogonal: zero
-    biases and orthogonal rows scaled by the gain (the encoder's sqrt 2)."""
+    biases and the encoder's weight orthogonal with gain sqrt 2."""
     _, cfg = load_recipe(ROOT / "recipes" / "baselines" / f"{recipe}.yaml")
     net = build_network(cfg)
     linears = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
@@ -72,8 +72,9 @@ def test_baseline_recipes_build_the_init_they_name(recipe, init):
         else:
             assert layer.bias.abs().max() == 0
     if init == "orthogonal":
-        w = linears[0].weight.detach()  # [hidden, obs] with hidden < obs: orthogonal rows
-        torch.testing.assert_close(w @ w.T, 2.0 * torch.eye(w.shape[0]), atol=1e-4, rtol=0)
+        w = linears[0].weight.detach()  # the encoder's [256, 148]: orthogonal columns (rows where it is wide)
+        gram = w.T @ w if w.shape[0] >= w.shape[1] else w @ w.T
+        torch.testing.assert_close(gram, 2.0 * torch.eye(gram.shape[0]), atol=1e-4, rtol=0)
 
 
 def _suite_file(tmp_path: Path, body: str) -> Path:

@@ -71,8 +71,17 @@ def test_adversarial_inputs_are_finite(batch, case):
     assert sa.nan_fallbacks == 0  # none of these needs the fallback
 
 
-def test_mask_value_is_finite_constant():
-    assert math.isfinite(MASK_VALUE) and MASK_VALUE == -1e9
+def test_masked_columns_get_uniform_attention_without_a_nan_fallback():
+    """The mask logit is finite (MASK_VALUE): a masked column, even a whole masked row, is a uniform 1/K over the
+    slots before the validity weights zero it, never a NaN the fallback would have to catch (-inf would be)."""
+    assert math.isfinite(MASK_VALUE)
+    sa = _sa()
+    mask = torch.ones(2, N, dtype=torch.bool)
+    mask[0, -3:] = False
+    mask[1] = False  # a fully masked row
+    slots, attn = sa.forward_with_attention(torch.randn(2, N, DIN), mask)
+    assert sa.nan_fallbacks == 0 and torch.isfinite(slots).all()
+    assert torch.equal(attn[~mask.unsqueeze(1).expand_as(attn)], torch.zeros(int((~mask).sum()) * K))
 
 
 def test_nan_fallback_is_counted_and_logged(caplog):
