@@ -2,6 +2,8 @@ from pathlib import Path
 
 import pytest
 
+from freamer_rl.model.modalities import MODALITIES
+
 from freamer_rl.errors import ConfigError
 from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 from freamer_rl.config.loader import config_to_dict
@@ -16,7 +18,8 @@ def test_defaults_load():
     cfg = load_config()
     assert isinstance(cfg, FreamerConfig)
     assert cfg.optim.lr == pytest.approx(1e-4)
-    assert cfg.model.flow.gate_init["vision"] == -5.0
+    # no per-recipe gate logits by default: each modality's own default (vision -5) applies
+    assert cfg.model.flow.gate_init == {} and MODALITIES["vision"].gate_init == -5.0
 
 
 @pytest.mark.parametrize("recipe", RECIPES, ids=[r.name for r in RECIPES])
