@@ -147,3 +147,41 @@ def test_freamer_eval_reports_gates_and_refiner_displacement(tmp_path):
         assert 0 < result[f"fm_displacement_{m}"] < 0.5
         # the evaluated gates are the trained ones (the last progress row is written after the last update)
         assert abs(result[f"gate_{m}"] - float(rows[-1][f"gate_{m}"])) < 1e-6
+
+
+def test_embedding_noise_is_levels_times_the_row_std():
+    from freamer_rl.model.factory import EmbeddingNoise
+
+    torch.manual_seed(0)
+    e = torch.randn(4000, 64) * torch.linspace(0.5, 3.0, 4000)[:, None]  # rows of different scale
+    noise = EmbeddingNoise(2.0)(e) - e
+    ratio = noise.std(dim=-1) / e.std(dim=-1)
+    assert abs(float(ratio.mean()) - 2.0) < 0.05
+
+
+def test_table13_protocol_perturbs_one_embedding_before_its_refiner(tmp_path):
+    from freamer_rl.run.envs import make_batched_env
+    from freamer_rl.trainers.minigrid_ppo import build_modules
+
+    cfg = load_config(TINY, [])
+    torch.manual_seed(0)
+    modules = build_modules(cfg)
+    env = make_batched_env(cfg, modules.primers(), seed=0)
+    td = env.reset()
+    env.close()
+    with torch.no_grad():
+        clean = modules.policy(td.clone())
+        same = modules.policy_with_embedding_noise({"state": 0.0})(td.clone())
+        noisy = modules.policy_with_embedding_noise({"state": 4.0})(td.clone())
+    torch.testing.assert_close(same["refined", "state"], clean["refined", "state"])
+    assert not torch.allclose(noisy["embed", "state"], clean["embed", "state"])
+    torch.testing.assert_close(noisy["embed", "reward"], clean["embed", "reward"])  # only the chosen modality
+    # the refiner read the noisy embedding: its output follows it
+    torch.testing.assert_close(noisy["refined", "state"], modules.refiners["state"](noisy["embed", "state"]))
+    TRAINERS["minigrid_ppo"].train(load_config(TINY, ["run.total_frames=128"]), tmp_path / "run")
+    ckpt = sorted((tmp_path / "run" / "checkpoints").glob("checkpoint_*.pt"))[-1]
+    out = TRAINERS["minigrid_ppo"].evaluate(ckpt, episodes=2, corrupt=[CorruptionConfig("embed.state", "gaussian", 8.0,
+                                                                                         "eval")])
+    assert out["embedding_noise"] == {"state": 8.0}
+    with pytest.raises(ConfigError, match=r"env.corrupt\[0\]: an embedding key"):
+        load_config(TINY, ["env.corrupt=[{key: embed.state, kind: gaussian, when: train}]"])

@@ -26,11 +26,13 @@ from dataclasses import dataclass
 
 import torch
 from tensordict.nn import TensorDictSequential
+from tensordict import unravel_key
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Composite
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
 
+from freamer_rl.errors import EnvSetupError
 from freamer_rl.model.config import ModelConfig
 from freamer_rl.model.heads import action_kind, build_actor, build_critic
 from freamer_rl.layers.dnc import DNCModule
@@ -42,6 +44,18 @@ from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observ
 from freamer_rl.layers.tdmodule import KeyedModule
 
 logger = logging.getLogger(__name__)
+
+
+class EmbeddingNoise(nn.Module):
+    """``e [*B, d] -> e + level * std_row(e) * N(0, 1)``: Gaussian noise of ``level`` times each row's own std
+    across its ``d`` entries (the paper's Table 13 protocol, applied to a Layer-1 embedding before its refiner)."""
+
+    def __init__(self, level: float) -> None:
+        super().__init__()
+        self.level = float(level)
+
+    def forward(self, e: torch.Tensor) -> torch.Tensor:
+        return e + self.level * e.std(dim=-1, keepdim=True) * torch.randn_like(e)
 
 
 class StackModalities(nn.Module):
@@ -81,6 +95,18 @@ class FreamerModules:
     def gates(self) -> dict[str, float]:
         """Per-modality residual gate sigma(alpha_m) (Eq. 3)."""
         return {m: float(r.gate.detach()) for m, r in self.refiners.items()}
+
+    def policy_with_embedding_noise(self, levels: Mapping[str, float]):
+        """The policy with :class:`EmbeddingNoise` on ``("embed", m)`` right after modality ``m``'s encoder, for each
+        ``m: level`` of ``levels`` (evaluation of Table 13; the weights are shared with this model)."""
+        unknown = sorted(set(levels) - set(self.modalities))
+        if unknown:
+            raise EnvSetupError(f"embedding noise: {unknown} are not modalities of this model {self.modalities}")
+        steps = list(self.trunk.module)
+        for m, level in levels.items():
+            at = next(i for i, s in enumerate(steps) if ("embed", m) in [unravel_key(k) for k in s.out_keys])
+            steps.insert(at + 1, KeyedModule(EmbeddingNoise(level), in_keys=[("embed", m)], out_keys=[("embed", m)]))
+        return ActorValueOperator(TensorDictSequential(*steps), self.actor, self.critic).get_policy_operator()
 
     def refiner_keys(self) -> dict[str, tuple[NestedKey, NestedKey]]:
         """``{m: (input key, output key)}`` of each refiner: ``("embed", m) -> ("refined", m)`` before the fuser,

@@ -47,7 +47,7 @@ from freamer_rl.config.loader import VALIDATORS, config_to_dict
 from freamer_rl.config.sections import (
     BASE_RANGES, BASE_RENAMED, PPO_RANGES, BaseConfig, PPOConfig, check_base, check_ppo_layout,
 )
-from freamer_rl.errors import CheckpointError
+from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.layers.checks import set_value_checks
 from freamer_rl.machinery.checks import check_machinery
 from freamer_rl.machinery.config import MACHINERY_RANGES, OGMConfig, ShapingConfig, SuccessBufferConfig
@@ -106,6 +106,11 @@ class FreamerConfig(BaseConfig):
 def validate(cfg: FreamerConfig) -> None:
     """Cross-field checks of a built FreamerConfig (types, unknown keys and number ranges are the loader's)."""
     check_base(cfg)
+    for i, c in enumerate(cfg.env.corrupt):
+        if c.key.startswith("embed.") and (c.when != "eval" or c.kind != "gaussian"
+                                           or c.key.split(".", 1)[1] not in cfg.model.modalities):  # fmt: skip
+            raise ConfigError(f"env.corrupt[{i}]: an embedding key (embed.<modality>, one of {cfg.model.modalities}) "
+                              f"takes kind gaussian when eval (Table 13's protocol), got {c.key} {c.kind} {c.when}")
     check_model_names(cfg.model)
     check_model_shapes(cfg)
     check_machinery(cfg)
@@ -389,10 +394,18 @@ def evaluate(checkpoint: str | Path, *, episodes: int = 20, deterministic: bool 
     modules = build_modules(cfg)
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()
-    result = run_episodes(cfg, modules.policy, modules.primers(), episodes=episodes, deterministic=deterministic,
+    # ("embed", m) entries (key "embed.<m>", kind gaussian) perturb an embedding before its refiner (Table 13)
+    entries = [c for c in cfg.env.corrupt if c.when in ("eval", "both")] if corrupt is None else list(corrupt)
+    embed = {c.key.split(".", 1)[1]: c.level for c in entries if c.key.startswith("embed.")}
+    if any(c.kind != "gaussian" for c in entries if c.key.startswith("embed.")):
+        raise ConfigError("env.corrupt: an embedding (embed.<modality>) takes kind gaussian only")
+    corrupt = [c for c in entries if not c.key.startswith("embed.")]
+    policy = modules.policy_with_embedding_noise(embed) if embed else modules.policy
+    result = run_episodes(cfg, policy, modules.primers(), episodes=episodes, deterministic=deterministic,
                           num_envs=num_envs, seed=seed, max_steps=max_steps, corrupt=corrupt,
                           step_metrics=lambda td: {f"fm_displacement_{m}": v for m, v in modules.displacement(td).items()})
     result.update({f"gate_{m}": g for m, g in modules.gates().items()})
+    result["embedding_noise"] = embed
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
 
 
