@@ -10,10 +10,9 @@ import logging
 
 import numpy as np
 import pytest
-
-from freamer_rl.data import pamap2_parse
-from freamer_rl.data import Pamap2FormatError, load_pamap2_subject, write_synthetic_pamap2
 from test_pamap2 import _edit  # the same line editor as the loader's error tests
+
+from freamer_rl.data import Pamap2FormatError, load_pamap2_subject, pamap2_parse, write_synthetic_pamap2
 
 BLOCKS = (600, 5000, pamap2_parse.BLOCK_BYTES)  # < one row, a few rows, the default
 

@@ -150,7 +150,7 @@ def test_compile_fullgraph_without_graph_breaks(name):
     with torch.no_grad():
         for got, want in zip(_as_tuple(compiled(*inputs)), _as_tuple(module(*inputs))):
             torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-5)
-    torch._dynamo.reset()
+    torch.compiler.reset()
 
 
 def test_full_policy_through_torchrl_gae_with_default_vmap():
@@ -159,7 +159,14 @@ def test_full_policy_through_torchrl_gae_with_default_vmap():
     from torchrl.objectives.value import GAE
 
     from freamer_rl.model.config import (
-        DNCConfig, FlowConfig, FNOConfig, LanguageConfig, ModelConfig, RewardConfig, StateConfig, VisionConfig,
+        DNCConfig,
+        FlowConfig,
+        FNOConfig,
+        LanguageConfig,
+        ModelConfig,
+        RewardConfig,
+        StateConfig,
+        VisionConfig,
     )
     from freamer_rl.model.factory import build_freamer
     from freamer_rl_envs.minigrid import make_minigrid_env

@@ -10,13 +10,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.errors import CheckpointError
 from freamer_rl.machinery.reward_mixer import RewardMixer
-from freamer_rl.run.sequences import split_sequences
 from freamer_rl.machinery.shaping import potential_difference
-from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.run.checkpoint import latest_checkpoint
+from freamer_rl.run.sequences import split_sequences
+from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"

@@ -14,14 +14,21 @@ from torch import nn
 from torchrl.modules import ProbabilisticActor, ValueOperator, set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 
-from freamer_rl.run import env_registry
-from freamer_rl.trainers.registry import load_config
-from freamer_rl.run.sequences import split_sequences
 from freamer_rl.machinery.success_buffer import (
-    LOSS_MASK_KEY, LOSS_WEIGHT_KEY, REPLAY_MASK_KEY, SuccessBuffer, correct_replay, mix_minibatch, replay_sequences,
-    success_step_mask, weighted_ppo_loss,
+    LOSS_MASK_KEY,
+    LOSS_WEIGHT_KEY,
+    REPLAY_MASK_KEY,
+    SuccessBuffer,
+    correct_replay,
+    mix_minibatch,
+    replay_sequences,
+    success_step_mask,
+    weighted_ppo_loss,
 )
+from freamer_rl.run import env_registry
+from freamer_rl.run.sequences import split_sequences
 from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 
 torch.set_num_threads(1)
 TINY = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"

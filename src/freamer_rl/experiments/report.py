@@ -21,6 +21,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import write_rows_csv
 
@@ -92,7 +94,6 @@ def plot_bands(results: list[dict], path: Path, y_key: str, title: str, *, x_key
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
     fig, ax = plt.subplots(figsize=(7, 4))
     methods = order if order is not None else sorted({r["method"] for r in results})

@@ -61,7 +61,7 @@ def build_ours(batch: int) -> tuple[RSSMWorldModelEnv, ProbabilisticActor, Tenso
     return env, policy, seeds
 
 
-class _ContinuationDone(nn.Module):
+class ContinuationDone(nn.Module):
     """``[state; belief] -> terminated = sigmoid(MLP) < 0.5``: the work of our continuation head, for DreamerEnv."""
 
     def __init__(self) -> None:
@@ -80,7 +80,7 @@ def build_dreamer(batch: int, continuation: bool = False) -> tuple[DreamerEnv, P
     prior = RSSMPrior(action_spec, hidden_dim=HIDDEN, rnn_hidden_dim=DETER, state_dim=STOCH, action_dim=N_ACTIONS)
     modules = [SafeModule(prior, in_keys=["state", "belief", "action"], out_keys=["_", "_", "state", "belief"])]
     if continuation:
-        modules.append(SafeModule(_ContinuationDone(), in_keys=["state", "belief"], out_keys=["terminated", "done"]))
+        modules.append(SafeModule(ContinuationDone(), in_keys=["state", "belief"], out_keys=["terminated", "done"]))
     transition = SafeSequential(*modules)
     reward = SafeModule(
         MLP(in_features=DETER + STOCH, out_features=1, num_cells=[HIDDEN, HIDDEN], activation_class=nn.ELU),

@@ -14,8 +14,8 @@ from freamer_rl.config.sections import (
 )
 from freamer_rl.errors import ConfigError
 
-__all__ = ["NETWORK_INITS", "NetworkConfig", "network_init", "check_network", "PPOBaselineConfig", "ImpalaSection", "ImpalaConfig", "DreamerSection",
-           "DreamerConfig", "ARCHITECTURE_FIELDS"]
+__all__ = ["NETWORK_INITS", "NetworkConfig", "network_init", "check_network", "PPOBaselineConfig", "ImpalaSection",
+           "ImpalaConfig", "DreamerSection", "DreamerConfig", "ARCHITECTURE_FIELDS"]
 
 
 def _size(limit: int) -> Range:
@@ -31,7 +31,7 @@ NETWORK_RANGES: dict[str, Range] = {"network.hidden": _size(WIDTH_LIMIT)}
 NETWORK_INITS = ("auto", "orthogonal", "torch_default")
 
 
-def network_init(net: "NetworkConfig") -> str:
+def network_init(net: NetworkConfig) -> str:
     """``network.init`` with ``auto`` resolved: ``torch_default`` for ``kind: mlp``, ``orthogonal`` for ``cnn``."""
     if net.init != "auto":
         return net.init
