@@ -82,11 +82,9 @@ def test_batched_env_of_every_adapter_matches_its_single_env_specs(name):
 def test_next_values_from_root_pass_equal_a_full_next_pass(tmp_path):
     cfg = load_config(TINY, ["env.id=MiniGrid-Empty-5x5-v0", "ppo.frames_per_batch=256", "run.total_frames=256"])
     trainer = Trainer(cfg, tmp_path / "run", resume=False)
-    collector = trainer._make_collector(256)
-    data = next(iter(collector))
-    collector.shutdown()
+    data = trainer.collect_batch()
     assert bool(data["next", "done"].any())  # episode ends inside the batch (their next value is computed)
-    fast = trainer._compute_advantage(data.clone())
+    fast = trainer.compute_advantage(data.clone())
     value = trainer.modules.value
     keys = [k for k in value.in_keys if k != "is_init"]
     with torch.no_grad():
@@ -99,7 +97,7 @@ def test_next_values_from_root_pass_equal_a_full_next_pass(tmp_path):
         ref = trainer.gae(ref)
     torch.testing.assert_close(fast["next", "state_value"], ref_next, rtol=1e-5, atol=1e-5)
     torch.testing.assert_close(fast["advantage"], ref["advantage"], rtol=1e-5, atol=1e-5)
-    trainer._lock.release()
+    trainer.life.lock.release()
 
 
 # ---------------------------------------------------------------------------------------------------------------

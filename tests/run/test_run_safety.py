@@ -350,7 +350,7 @@ def test_sigterm_checkpoints_and_restores_the_handler(tmp_path, monkeypatch):
         signal.signal(signal.SIGTERM, old)
     resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
     assert resumed.frames == 128 and resumed.resumed_from is not None
-    resumed._lock.release()
+    resumed.life.lock.release()
 
 
 def test_cli_exits_143_on_sigterm(tmp_path, monkeypatch, capsys, caplog):

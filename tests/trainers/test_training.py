@@ -89,11 +89,9 @@ def test_collector_gae_and_torchrl_clip_ppo_loss(tmp_path):
     cfg = tiny_cfg()
     trainer = Trainer(cfg, tmp_path / "run", resume=False)
     modules = trainer.modules
-    collector = trainer._make_collector(256)
-    data = next(iter(collector))
-    collector.shutdown()
+    data = trainer.collect_batch()
     assert data.batch_size == (2, 64)
-    data = trainer._compute_advantage(data)
+    data = trainer.compute_advantage(data)
     seqs = split_sequences(data, cfg.ppo.sequence_length)
     assert seqs.batch_size == (16, 8)
     loss = ClipPPOLoss(modules.policy, modules.value, functional=False)
@@ -133,10 +131,8 @@ def test_trainer_run_directory_and_resume(tmp_path):
 def test_smoothness_term_reaches_encoders_only_when_asked(tmp_path, into_encoders):
     """aux.smooth_into_encoders=false (default): L_smooth of a training minibatch trains the fuser only."""
     trainer = Trainer(tiny_cfg(f"aux.smooth_into_encoders={str(into_encoders).lower()}"), tmp_path / "run")
-    collector = trainer._make_collector(128)
-    data = next(iter(collector))
-    collector.shutdown()
-    mb = split_sequences(trainer._compute_advantage(data), trainer.cfg.ppo.sequence_length)
+    data = trainer.collect_batch()
+    mb = split_sequences(trainer.compute_advantage(data), trainer.cfg.ppo.sequence_length)
     with set_recurrent_mode(True):
         mb = trainer.modules.trunk(mb)
     loss = trainer.aux_loss(mb)["loss_smooth"]
