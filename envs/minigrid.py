@@ -65,10 +65,10 @@ from tensordict import NonTensorData, TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, NonTensor, Unbounded
 from torchrl.envs import EnvBase
 
-from freamer_rl.run.env_registry import EnvAdapter
-from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
 from freamer_rl.data.text import WordTokenizer
+from freamer_rl.run.env_registry import EnvAdapter
 from freamer_rl_envs.minigrid_language import LanguageReward, language_reward_option
+from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
 
 logger = logging.getLogger(__name__)
 

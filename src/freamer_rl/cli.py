@@ -28,7 +28,8 @@ import sys
 from pathlib import Path
 
 from freamer_rl import __version__
-from freamer_rl.errors import FreamerError
+from freamer_rl.config.sections import CorruptionConfig, check_corruption
+from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.chain import run_chain
 from freamer_rl.experiments.suite import describe, plan_suite, run_suite
 from freamer_rl.health.cli import main as health_main
@@ -82,6 +83,11 @@ def _parser() -> argparse.ArgumentParser:
     p_eval.add_argument("--deterministic", action="store_true", help="argmax actions instead of sampling")
     p_eval.add_argument("--num-envs", type=int, default=None)
     p_eval.add_argument("--seed", type=int, default=12345)
+    p_eval.add_argument("--corrupt", action="append", default=None, metavar="KEY:KIND:LEVEL",
+                        help="corrupt an observation during evaluation, e.g. pixels:gaussian:1.0, grid:salt:0.3, "
+                             "grid:dropout:0.5, direction:stale:4, pixels:noisy_tv:0.25, or embed.state:gaussian:4 "
+                             "(noise on a Layer-1 embedding, Table 13); repeatable; replaces the recipe's env.corrupt "
+                             "entries for evaluation (--corrupt none: a clean evaluation)")
 
     p_health = sub.add_parser(
         "health", help="wearable-health: anomaly report (and train, an alias of freamer-rl train)", add_help=False
@@ -112,9 +118,10 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "suite":
         return _suite(args)
     if args.command == "eval":
+        options = {} if args.corrupt is None else {"corrupt": parse_corruptions(args.corrupt)}
         result = evaluate_any(
             args.checkpoint, episodes=args.episodes, deterministic=args.deterministic, num_envs=args.num_envs,
-            seed=args.seed,
+            seed=args.seed, **options,
         )
         sys.stdout.write(json.dumps(result, indent=2, default=str) + "\n")
         return 0
@@ -165,6 +172,22 @@ def allocation_failure(err: BaseException) -> str | None:
     return (f"out of memory ({type(err).__name__}: {shown or 'no details'}): a size in the recipe is too large for "
             "this machine (e.g. model.embed_dim, model.head_hidden, network.hidden, a batch, sequence or buffer "
             "size); lower it (--debug shows where it was allocated)")
+
+
+def parse_corruptions(specs: list[str]) -> list[CorruptionConfig]:
+    """``--corrupt KEY:KIND:LEVEL`` values as ``env.corrupt`` entries for evaluation (``none``: no corruption)."""
+    if specs == ["none"]:
+        return []
+    entries = []
+    for i, spec in enumerate(specs):
+        parts = spec.rsplit(":", 2)
+        try:
+            key, kind, level = parts[0], parts[1], float(parts[2])
+        except (IndexError, ValueError):
+            raise ConfigError(f"--corrupt {spec!r}: expected KEY:KIND:LEVEL, e.g. pixels:gaussian:1.0") from None
+        entries.append(CorruptionConfig(key=key, kind=kind, level=level, when="eval"))
+    check_corruption(entries)
+    return entries
 
 
 def main(argv: list[str] | None = None) -> int:

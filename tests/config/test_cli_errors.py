@@ -48,18 +48,25 @@ def test_huge_baseline_sizes_are_refused_at_load(recipe, override, field, capsys
 
 
 def _limit_address_space() -> None:  # a failed allocation on any machine, never a swapping one
-    resource.setrlimit(resource.RLIMIT_AS, (16 << 30, 16 << 30))
+    resource.setrlimit(resource.RLIMIT_AS, (6 << 30, 6 << 30))
+
+
+def test_a_size_beyond_the_bound_is_refused_at_load(capsys):
+    assert cli.main(["params", str(RECIPES / "tiny.yaml"), "model.embed_dim=1000000000"]) == 2
+    assert _one_error_line(capsys) == "error: model.embed_dim: got 1000000000, expected an integer in [1, 16,384]"
 
 
 @pytest.mark.skipif(sys.platform != "linux", reason="RLIMIT_AS")
 def test_a_model_too_large_to_allocate_is_one_line(tmp_path):
-    """FreamerV1 ``model.embed_dim`` far too large: the allocation failure is named, no traceback."""
+    """Sizes within the bounds that still do not fit in memory (a 3 x 16k -> 16k concat MLP: 3.2 GB, under a
+    limited address space): the allocation failure is named, no traceback."""
     done = subprocess.run([sys.executable, "-m", "freamer_rl.cli", "train", str(RECIPES / "tiny.yaml"),
-                           "model.embed_dim=1000000000", "--run-dir", str(tmp_path / "run")],
+                           "model.embed_dim=16384", "model.fusion=concat", "model.fusion_hidden=16384",
+                           "model.fno.modes=8", "--run-dir", str(tmp_path / "run")],
                           capture_output=True, text=True, timeout=300, preexec_fn=_limit_address_space)  # fmt: skip
     assert done.returncode == 2, done.stderr[-2000:]
     err = done.stderr.strip().splitlines()
-    assert err[-1].startswith("error: out of memory (") and "too large" in err[-1] and "model.embed_dim" in err[-1]
+    assert err[-1].startswith("error: out of memory (") and "too large" in err[-1]
     assert "Traceback" not in done.stderr
 
 

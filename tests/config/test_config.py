@@ -2,10 +2,10 @@ from pathlib import Path
 
 import pytest
 
+from freamer_rl.config.loader import config_to_dict
 from freamer_rl.errors import ConfigError
 from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.trainers.minigrid_ppo import FreamerConfig
-from freamer_rl.config.loader import config_to_dict
 from freamer_rl.trainers.registry import load_config
 
 _RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes"

@@ -9,11 +9,10 @@ import pytest
 import torch
 import yaml
 
+from freamer_rl.config.checks import config_numbers, resolve_device
 from freamer_rl.errors import ConfigError
 from freamer_rl.trainers.minigrid_ppo import FreamerConfig
-from freamer_rl.trainers.registry import load_config
-from freamer_rl.trainers.registry import TRAINERS
-from freamer_rl.config.checks import config_numbers, resolve_device
+from freamer_rl.trainers.registry import TRAINERS, load_config
 
 _RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes"
 RECIPES = [r for r in sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from freamer_rl.run import env_registry
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = [r for r in sorted((ROOT / "recipes").glob("*.yaml")) + sorted((ROOT / "recipes" / "gym").glob("*.yaml"))

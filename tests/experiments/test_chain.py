@@ -11,12 +11,11 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from freamer_rl import cli
+from freamer_rl.errors import CheckpointError, ConfigError, EnvSetupError
 from freamer_rl.experiments.chain import load_chain, run_chain, split_overrides
-from freamer_rl.errors import ConfigError
-from freamer_rl.trainers.registry import load_config
-from freamer_rl.errors import CheckpointError, EnvSetupError
-from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.run.envs import make_single_env
+from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 from freamer_rl_envs.minigrid import make_minigrid_env
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -185,3 +185,20 @@ def test_table13_protocol_perturbs_one_embedding_before_its_refiner(tmp_path):
     assert out["embedding_noise"] == {"state": 8.0}
     with pytest.raises(ConfigError, match=r"env.corrupt\[0\]: an embedding key"):
         load_config(TINY, ["env.corrupt=[{key: embed.state, kind: gaussian, when: train}]"])
+
+
+def test_cli_eval_takes_corruptions(tmp_path, capsys):
+    import json
+
+    from freamer_rl import cli
+
+    TRAINERS["minigrid_ppo"].train(load_config(TINY, ["run.total_frames=128"]), tmp_path / "run")
+    assert cli.main(["eval", str(tmp_path / "run"), "--episodes", "2", "--corrupt", "grid:salt:0.5",
+                     "--corrupt", "embed.state:gaussian:2"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["corrupt"] == [{"key": "grid", "kind": "salt", "level": 0.5, "when": "eval"}]
+    assert out["embedding_noise"] == {"state": 2.0}
+    assert cli.main(["eval", str(tmp_path / "run"), "--episodes", "2", "--corrupt", "grid:salt"]) == 2
+    assert "error: --corrupt 'grid:salt': expected KEY:KIND:LEVEL" in capsys.readouterr().err
+    assert cli.main(["eval", str(tmp_path / "run"), "--episodes", "2", "--corrupt", "grid:blur:1"]) == 2
+    assert "env.corrupt[0].kind: expected one of" in capsys.readouterr().err

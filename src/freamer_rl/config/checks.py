@@ -151,6 +151,14 @@ def UNIT_INTERVAL(v):  # noqa: N802 ((0, 1])
     return 0 < v <= 1
 
 
+def size_range(limit: int) -> Range:
+    """A size bound: an integer in [1, limit]; far larger sizes only end in an allocation failure."""
+    return (lambda v: 1 <= v <= limit, f"in [1, {limit:,}]")
+
+
+#: widths, layer counts, batch and sequence sizes: generous for a workstation, refused before anything is allocated
+WIDTH_LIMIT, LAYERS_LIMIT, BATCH_LIMIT = 16_384, 64, 65_536
+
 _INT_DEFAULT_RANGE: Range = (lambda v: v >= 1, ">= 1")
 _FLOAT_DEFAULT_RANGE: Range = (lambda v: True, "")
 

@@ -17,7 +17,7 @@ import math
 from typing import Any, ClassVar
 
 from freamer_rl.config.checks import (
-    NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range, check_collector, check_device_name, check_logging, check_numbers,
+    BATCH_LIMIT, NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range, size_range, check_collector, check_device_name, check_logging, check_numbers,
     run_name_problem,
 )
 from freamer_rl.errors import ConfigError
@@ -128,6 +128,7 @@ BASE_RANGES: dict[str, Range] = {
     "env.reward_history": (NON_NEGATIVE, ">= 0 (0: no reward history)"),
     "run.seed": (lambda v: 0 <= v < 2**32, "in [0, 2**32 - 1]"),
     "run.stop_at_success": (UNIT_INTERVAL, "in (0, 1]"),
+    "env.num_envs": size_range(4_096),
     "optim.lr": (POSITIVE, "> 0"),
     "optim.eps": (POSITIVE, "> 0"),
     "optim.max_grad_norm": (POSITIVE, "> 0"),
@@ -135,6 +136,10 @@ BASE_RANGES: dict[str, Range] = {
 }
 
 PPO_RANGES: dict[str, Range] = {
+    "ppo.frames_per_batch": size_range(16 * BATCH_LIMIT),
+    "ppo.minibatch_size": size_range(16 * BATCH_LIMIT),
+    "ppo.sequence_length": size_range(BATCH_LIMIT),
+    "ppo.epochs": size_range(1_000),
     "ppo.clip_epsilon": (POSITIVE, "> 0"),
     "ppo.gamma": (UNIT_INTERVAL, "in (0, 1]"),
     "ppo.gae_lambda": (lambda v: 0 <= v <= 1, "in [0, 1]"),

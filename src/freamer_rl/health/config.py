@@ -14,7 +14,7 @@ from typing import ClassVar
 
 import torch
 
-from freamer_rl.config.checks import check_logging, check_numbers, run_name_problem
+from freamer_rl.config.checks import BATCH_LIMIT, LAYERS_LIMIT, WIDTH_LIMIT, size_range, check_logging, check_numbers, run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, load_config
 from freamer_rl.config.sections import BASE_RANGES, LoggingConfig, RunConfig
 from freamer_rl.errors import ConfigError
@@ -204,6 +204,13 @@ _POS, _NONNEG = (lambda v: v > 0, "> 0"), (lambda v: v >= 0, ">= 0")
 #: >= 1 and floats finite).
 HEALTH_RANGES = {
     "run.seed": BASE_RANGES["run.seed"],
+    **{k: size_range(WIDTH_LIMIT) for k in ("encoder.embed_dim", "encoder.hidden", "encoder.cnn_channels", "encoder.dim",
+                                             "encoder.fm_hidden", "encoder.memory_slots", "encoder.memory_width",
+                                             "world_model.deter_dim", "world_model.stoch_dim", "world_model.hidden",
+                                             "imagination.policy_hidden")},
+    **{k: size_range(BATCH_LIMIT) for k in ("env.num_envs", "eval.num_envs", "world_model.batch_size",
+                                             "world_model.seq_len", "imagination.num_seeds", "imagination.horizon")},
+    **{k: size_range(LAYERS_LIMIT) for k in ("encoder.mlp_layers", "encoder.heads", "encoder.fm_steps")},
     **{k: _NONNEG for k in ("env.data_seed", "eval.seed", "collect.iterations", "collect.prefill_frames",
                             "world_model.train_steps", "world_model.prefill_train_steps", "imagination.updates",
                             "eval.every", "encoder.fm_noise_std", "world_model.beta", "world_model.free_nats",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
-from freamer_rl.config.checks import NON_NEGATIVE, POSITIVE, Range
+from freamer_rl.config.checks import LAYERS_LIMIT, NON_NEGATIVE, POSITIVE, WIDTH_LIMIT, Range, size_range
 
 
 @dataclass
@@ -125,6 +125,12 @@ class AuxConfig:
 
 
 MODEL_RANGES: dict[str, Range] = {
+    **{f"model.{k}": size_range(WIDTH_LIMIT) for k in (
+        "embed_dim", "head_hidden", "fusion_hidden", "vector.hidden", "flow.hidden", "state.channels",
+        "reward.channels", "dnc.memory_slots", "dnc.memory_width", "vision.num_slots", "language.num_slots")},
+    **{f"model.{k}": size_range(LAYERS_LIMIT) for k in ("flow.steps", "language.layers", "language.heads",
+                                                          "cross_modal_heads", "vision.slot_iters",
+                                                          "language.slot_iters")},
     "model.flow.noise_std": (NON_NEGATIVE, ">= 0"),
     "model.flow.adaptive_tau": (POSITIVE, "> 0"),
     "aux.lambda_fm": (NON_NEGATIVE, ">= 0"),

@@ -10,9 +10,10 @@ The adapter, not the library, decides which config values become env options and
 from __future__ import annotations
 
 import functools
+from collections.abc import Callable
 from dataclasses import dataclass
 from importlib.metadata import entry_points
-from typing import Any, Callable
+from typing import Any
 
 import torch
 

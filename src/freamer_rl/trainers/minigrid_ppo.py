@@ -63,7 +63,7 @@ from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
 from freamer_rl.model.weights import load_model_state, transfer_weights
 from freamer_rl.run.corruption import corruption_transforms
-from freamer_rl.run.envs import probe_specs
+from freamer_rl.run.envs import check_env_writes, probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
 from freamer_rl.run.metrics import LogMeans
@@ -106,6 +106,7 @@ class FreamerConfig(BaseConfig):
 def validate(cfg: FreamerConfig) -> None:
     """Cross-field checks of a built FreamerConfig (types, unknown keys and number ranges are the loader's)."""
     check_base(cfg)
+    check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
     for i, c in enumerate(cfg.env.corrupt):
         if c.key.startswith("embed.") and (c.when != "eval" or c.kind != "gaussian"
                                            or c.key.split(".", 1)[1] not in cfg.model.modalities):  # fmt: skip

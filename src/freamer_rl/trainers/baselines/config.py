@@ -7,10 +7,17 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from freamer_rl.config.checks import NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range
+from freamer_rl.config.checks import BATCH_LIMIT, LAYERS_LIMIT, WIDTH_LIMIT, size_range, NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range
 from freamer_rl.config.loader import VALIDATORS
 from freamer_rl.config.sections import (
-    BASE_RANGES, BASE_RENAMED, PPO_RANGES, BaseConfig, OptimConfig, PPOConfig, check_base, check_ppo_layout,
+    BASE_RANGES,
+    BASE_RENAMED,
+    PPO_RANGES,
+    BaseConfig,
+    OptimConfig,
+    PPOConfig,
+    check_base,
+    check_ppo_layout,
 )
 from freamer_rl.errors import ConfigError
 
@@ -18,14 +25,7 @@ __all__ = ["NETWORK_INITS", "NetworkConfig", "network_init", "check_network", "P
            "ImpalaConfig", "DreamerSection", "DreamerConfig", "ARCHITECTURE_FIELDS"]
 
 
-def _size(limit: int) -> Range:
-    """A size bound: an integer in [1, limit]; far larger sizes only end in an allocation failure."""
-    return (lambda v: 1 <= v <= limit, f"in [1, {limit:,}]")
-
-
-#: widths, batch and sequence sizes: generous for a workstation, refused before anything is allocated
-WIDTH_LIMIT, LAYERS_LIMIT, BATCH_LIMIT = 16_384, 64, 65_536
-NETWORK_RANGES: dict[str, Range] = {"network.hidden": _size(WIDTH_LIMIT)}
+NETWORK_RANGES: dict[str, Range] = {"network.hidden": size_range(WIDTH_LIMIT)}
 
 
 NETWORK_INITS = ("auto", "orthogonal", "torch_default")
@@ -119,7 +119,7 @@ class ImpalaConfig(BaseConfig):
     RANGES: ClassVar[dict[str, Range]] = {
         **BASE_RANGES,
         **NETWORK_RANGES,
-        "impala.frames_per_batch": _size(BATCH_LIMIT * 16),
+        "impala.frames_per_batch": size_range(BATCH_LIMIT * 16),
         "impala.gamma": (UNIT_INTERVAL, "in (0, 1]"),
         "impala.entropy_coeff": (NON_NEGATIVE, ">= 0"),
         "impala.critic_coeff": (NON_NEGATIVE, ">= 0"),
@@ -200,10 +200,10 @@ def _dreamer_ranges() -> dict[str, Range]:
     ranges.update({f"dreamer.{n}": (NON_NEGATIVE, ">= 0") for n in _DREAMER_NON_NEGATIVE})
     ranges.update({f"dreamer.{n}": (UNIT_INTERVAL, "in (0, 1]") for n in ("gamma", "lmbda", "slow_critic_tau")})
     ranges["dreamer.unimix"] = (lambda v: 0 <= v < 1, "in [0, 1)")
-    ranges.update({f"dreamer.{n}": _size(WIDTH_LIMIT) for n in ("deter", "hidden", "cnn_depth")})
-    ranges.update({f"dreamer.{n}": _size(1024) for n in ("stoch_categoricals", "stoch_classes")})
-    ranges["dreamer.mlp_layers"] = _size(LAYERS_LIMIT)
-    ranges.update({f"dreamer.{n}": _size(BATCH_LIMIT) for n in ("batch_size", "sequence_length", "horizon")})
+    ranges.update({f"dreamer.{n}": size_range(WIDTH_LIMIT) for n in ("deter", "hidden", "cnn_depth")})
+    ranges.update({f"dreamer.{n}": size_range(1024) for n in ("stoch_categoricals", "stoch_classes")})
+    ranges["dreamer.mlp_layers"] = size_range(LAYERS_LIMIT)
+    ranges.update({f"dreamer.{n}": size_range(BATCH_LIMIT) for n in ("batch_size", "sequence_length", "horizon")})
     return ranges
 
 
