@@ -35,8 +35,11 @@ def _run_seed(job: dict) -> list[dict]:
 
     torch.set_num_threads(1)
     with quiet_library_logs():
-        return run_chain(job["chain"], [f"seed={job['seed']}", f"output_dir={job['out']}"],
-                         stage_overrides=["run.threads=1", "logging.progress_bar=false"])  # fmt: skip
+        return run_chain(
+            job["chain"],
+            [f"seed={job['seed']}", f"output_dir={job['out']}"],
+            stage_overrides=["run.threads=1", "logging.progress_bar=false"],
+        )
 
 
 def _last_stage_curve(stages: list[dict], window: int = 100) -> list[dict]:
@@ -44,18 +47,30 @@ def _last_stage_curve(stages: list[dict], window: int = 100) -> list[dict]:
     ``window``-th episode on (before that the windowed rate covers too few episodes to count)."""
     before = sum(int(s["frames"]) for s in stages[:-1])
     with open(Path(stages[-1]["run_dir"]) / "progress.csv", newline="") as f:
-        return [{"frames": before + int(r["frames"]), "episodes": int(r["episodes"]),
-                 "success_rate": float(r["success_rate"])}
-                for r in csv.DictReader(f) if int(r["episodes"]) >= window]  # fmt: skip
+        return [
+            {
+                "frames": before + int(r["frames"]),
+                "episodes": int(r["episodes"]),
+                "success_rate": float(r["success_rate"]),
+            }
+            for r in csv.DictReader(f)
+            if int(r["episodes"]) >= window
+        ]
 
 
 def summarise(seed: int, stages: list[dict]) -> dict:
     curve = _last_stage_curve(stages)
     f80, _ = first_reaching(curve, "success_rate", 0.80)
     f95, _ = first_reaching(curve, "success_rate", 0.95)
-    return {"seed": seed, "stages": " / ".join(f"{s['stage']} {int(s['frames']):,}" for s in stages[:-1]),
-            "chain_frames": stages[-1]["chain_frames"], "frames_to_80": f80, "frames_to_95": f95,
-            "final_success": stages[-1]["final_success_rate"], "curve": curve}  # fmt: skip
+    return {
+        "seed": seed,
+        "stages": " / ".join(f"{s['stage']} {int(s['frames']):,}" for s in stages[:-1]),
+        "chain_frames": stages[-1]["chain_frames"],
+        "frames_to_80": f80,
+        "frames_to_95": f95,
+        "final_success": stages[-1]["final_success_rate"],
+        "curve": curve,
+    }
 
 
 def write_report(name: str, env: str, rows: list[dict], out: Path, command: str) -> str:
@@ -65,21 +80,39 @@ def write_report(name: str, env: str, rows: list[dict], out: Path, command: str)
         writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows({k: r[k] for k in fields} for r in rows)
-    plot_bands([{"method": f"FreamerV1 chain {name}", "rows": r["curve"]} for r in rows], out / "learning_curve.png",
-               "success_rate", f"{env}: last stage of {name}", target=0.8, ylabel="success (last 100 episodes)")
+    plot_bands(
+        [{"method": f"FreamerV1 chain {name}", "rows": r["curve"]} for r in rows],
+        out / "learning_curve.png",
+        "success_rate",
+        f"{env}: last stage of {name}",
+        target=0.8,
+        ylabel="success (last 100 episodes)",
+    )
 
     def fmt(v):
         return "not reached" if v is None else f"{v:,}"
 
-    lines = [f"# Curriculum {name}: {env}", "", f"Generated {time.strftime('%Y-%m-%d %H:%M')}; frames are counted "
-             "across the whole chain (earlier stages included); success over the last 100 episodes.", "",
-             "| seed | earlier stages (frames) | frames to 80% | frames to 95% | final success | chain frames |",
-             "|---:|---|---:|---:|---:|---:|"]  # fmt: skip
+    lines = [
+        f"# Curriculum {name}: {env}",
+        "",
+        f"Generated {time.strftime('%Y-%m-%d %H:%M')}; frames are counted "
+        "across the whole chain (earlier stages included); success over the last 100 episodes.",
+        "",
+        "| seed | earlier stages (frames) | frames to 80% | frames to 95% | final success | chain frames |",
+        "|---:|---|---:|---:|---:|---:|",
+    ]
     for r in rows:
-        lines.append(f"| {r['seed']} | {r['stages']} | {fmt(r['frames_to_80'])} | {fmt(r['frames_to_95'])} | "
-                     f"{r['final_success']:.3f} | {r['chain_frames']:,} |")
-    lines += ["", f"Frames to 80%: {mean_std([r['frames_to_80'] for r in rows])}; to 95%: "
-              f"{mean_std([r['frames_to_95'] for r in rows])}.", "", f"Command: `{command}`"]  # fmt: skip
+        lines.append(
+            f"| {r['seed']} | {r['stages']} | {fmt(r['frames_to_80'])} | {fmt(r['frames_to_95'])} | "
+            f"{r['final_success']:.3f} | {r['chain_frames']:,} |"
+        )
+    lines += [
+        "",
+        f"Frames to 80%: {mean_std([r['frames_to_80'] for r in rows])}; to 95%: "
+        f"{mean_std([r['frames_to_95'] for r in rows])}.",
+        "",
+        f"Command: `{command}`",
+    ]
     text = "\n".join(lines) + "\n"
     (out / "results.md").write_text(text)
     return text

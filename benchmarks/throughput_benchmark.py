@@ -53,12 +53,33 @@ RESULT_TAG = "THROUGHPUT_RESULT "
 METHODS = ("current", "old", "baseline")
 METRICS = ("collect_fps", "update_fps", "overall_fps")
 CSV_FIELDS = [
-    "threads", "num_envs", "method", "code", "rounds", "batches", "frames_per_batch",
+    "threads",
+    "num_envs",
+    "method",
+    "code",
+    "rounds",
+    "batches",
+    "frames_per_batch",
     *[f"{m}_{s}" for m in METRICS for s in ("mean", "min", "max")],
     *[f"{m.removesuffix('_fps')}_vs_{o}" for o in ("old", "baseline") for m in METRICS],
 ]
-ROUND_FIELDS = ["round", "threads", "num_envs", "method", "frames", "collect_s", "advantage_s", "update_s",
-                "collect_fps", "update_fps", "overall_fps", "wall_s", "num_threads", "source", "error"]
+ROUND_FIELDS = [
+    "round",
+    "threads",
+    "num_envs",
+    "method",
+    "frames",
+    "collect_s",
+    "advantage_s",
+    "update_s",
+    "collect_fps",
+    "update_fps",
+    "overall_fps",
+    "wall_s",
+    "num_threads",
+    "source",
+    "error",
+]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -67,8 +88,13 @@ ROUND_FIELDS = ["round", "threads", "num_envs", "method", "frames", "collect_s",
 def _fps_summary(frames: int, collect: list[float], advantage: list[float], update: list[float]) -> dict:
     c, u = sum(collect), sum(update)
     return {
-        "frames": frames, "collect_s": c, "advantage_s": sum(advantage), "update_s": u,
-        "collect_fps": frames / c, "update_fps": frames / u, "overall_fps": frames / (c + u),
+        "frames": frames,
+        "collect_s": c,
+        "advantage_s": sum(advantage),
+        "update_s": u,
+        "collect_fps": frames / c,
+        "update_fps": frames / u,
+        "overall_fps": frames / (c + u),
         "per_batch": [{"collect_s": a, "update_s": b} for a, b in zip(collect, update)],
     }
 
@@ -128,8 +154,9 @@ def _time_freamer(spec: dict) -> dict:
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
     out = _fps_summary(frames, collect, advantage, update)
-    out.update(source=str(src.parent) + (" (+ envs.minigrid patch)" if patched else ""),
-               num_threads=torch.get_num_threads())
+    out.update(
+        source=str(src.parent) + (" (+ envs.minigrid patch)" if patched else ""), num_threads=torch.get_num_threads()
+    )
     return out
 
 
@@ -201,8 +228,9 @@ def extract_commit(commit: str, dest: Path) -> str:
     changes)."""
     sha = _git("rev-parse", "--short", f"{commit}^{{commit}}")
     paths = [p for p in ("src", "envs", "recipes") if _git("ls-tree", "--name-only", sha, p)]
-    archive = subprocess.run(["git", "-C", str(ROOT), "archive", "--format=tar", sha, *paths], check=True,
-                             capture_output=True).stdout
+    archive = subprocess.run(
+        ["git", "-C", str(ROOT), "archive", "--format=tar", sha, *paths], check=True, capture_output=True
+    ).stdout
     dest.mkdir(parents=True, exist_ok=True)
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
     return sha
@@ -217,13 +245,19 @@ def run_job(spec: dict, tree: Path | None, timeout: float) -> dict:
     env.update(OMP_NUM_THREADS=str(spec["threads"]), MKL_NUM_THREADS=str(spec["threads"]))
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
-                              capture_output=True, text=True, timeout=timeout, env=env, cwd=tempfile.gettempdir())
+        proc = subprocess.run(
+            [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=env,
+            cwd=tempfile.gettempdir(),
+        )
     except subprocess.TimeoutExpired:
         return {"error": f"timed out after {timeout:.0f} s", "wall_s": time.perf_counter() - t0}
     for line in reversed(proc.stdout.splitlines()):
         if line.startswith(RESULT_TAG):
-            return json.loads(line[len(RESULT_TAG):])
+            return json.loads(line[len(RESULT_TAG) :])
     tail = (proc.stderr.strip().splitlines() or ["no output"])[-1]
     return {"error": f"exit {proc.returncode}: {tail[:300]}", "wall_s": time.perf_counter() - t0}
 
@@ -270,8 +304,9 @@ def summarise(rounds: list[dict], configs: list[tuple[int, int]], methods: list[
     ok = [r for r in rounds if not r.get("error")]
     rows = []
     for t, n in configs:
-        by = {m: {r["round"]: r for r in ok if (r["threads"], r["num_envs"], r["method"]) == (t, n, m)}
-              for m in methods}
+        by = {
+            m: {r["round"]: r for r in ok if (r["threads"], r["num_envs"], r["method"]) == (t, n, m)} for m in methods
+        }
         for m in methods:
             rs = list(by[m].values())
             if not rs:
@@ -322,24 +357,33 @@ def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Pa
     ]
     for r in rows:
         n = "1 (own)" if r["method"] == "baseline" else r["num_envs"]
-        lines.append(f"| {r['threads']} | {n} | {names[r['method']]} | {_fmt(r['_collect_fps'])} | "
-                     f"{_fmt(r['_update_fps'])} | {_fmt(r['_overall_fps'])} |")
+        lines.append(
+            f"| {r['threads']} | {n} | {names[r['method']]} | {_fmt(r['_collect_fps'])} | "
+            f"{_fmt(r['_update_fps'])} | {_fmt(r['_overall_fps'])} |"
+        )
     cur = [r for r in rows if r["method"] == "current"]
     if any(r.get("_overall_vs_old") or r.get("_overall_vs_baseline") for r in cur):
-        lines += ["", "Ratios, current / other, per round then mean (min-max):", "",
-                  "| threads | env.num_envs | collection vs old | update vs old | overall vs old | "
-                  "collection vs baseline | update vs baseline | overall vs baseline |",
-                  "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            "Ratios, current / other, per round then mean (min-max):",
+            "",
+            "| threads | env.num_envs | collection vs old | update vs old | overall vs old | "
+            "collection vs baseline | update vs baseline | overall vs baseline |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         for r in cur:
-            cells = [_fmt(r.get(f"_{m.removesuffix('_fps')}_vs_{o}") or [], 2) for o in ("old", "baseline")
-                     for m in METRICS]
+            cells = [
+                _fmt(r.get(f"_{m.removesuffix('_fps')}_vs_{o}") or [], 2) for o in ("old", "baseline") for m in METRICS
+            ]
             lines.append(f"| {r['threads']} | {r['num_envs']} | " + " | ".join(cells) + " |")
     errors = [r for r in rounds if r.get("error")]
     if notes or errors:
         lines += ["", "Notes:", ""]
         lines += [f"- {n}" for n in notes]
-        lines += [f"- round {r['round']}, {r['threads']} thread(s), {r['num_envs']} envs, {r['method']}: "
-                  f"{r['error']}" for r in errors]
+        lines += [
+            f"- round {r['round']}, {r['threads']} thread(s), {r['num_envs']} envs, {r['method']}: {r['error']}"
+            for r in errors
+        ]
     lines += ["", f"Command: `{meta['command']}`"]
     text = "\n".join(lines) + "\n"
     (out / "results.md").write_text(text)
@@ -410,33 +454,68 @@ def main(argv: list[str] | None = None) -> str:
         trees["old"] = tmp
         recipes["old"] = _old_recipe(recipe, tmp)
         if recipes["old"] != str(recipe):
-            notes.append(f"The older commit runs its own copy of the recipe ({recipe.relative_to(ROOT)} at "
-                         f"{codes['old']}): each commit's default recipe, which the old config loader can read.")
+            notes.append(
+                f"The older commit runs its own copy of the recipe ({recipe.relative_to(ROOT)} at "
+                f"{codes['old']}): each commit's default recipe, which the old config loader can read."
+            )
     command = " ".join(["python benchmarks/throughput_benchmark.py", *(argv if argv is not None else sys.argv[1:])])
-    meta = {"date": time.strftime("%Y-%m-%d %H:%M"), "machine": _machine(), "load_start": _load(), "codes": codes,
-            "rounds": args.rounds, "batches": args.batches, "warmup": args.warmup, "frames_per_batch": fpb,
-            "overrides": " ".join(args.overrides), "command": command}
+    meta = {
+        "date": time.strftime("%Y-%m-%d %H:%M"),
+        "machine": _machine(),
+        "load_start": _load(),
+        "codes": codes,
+        "rounds": args.rounds,
+        "batches": args.batches,
+        "warmup": args.warmup,
+        "frames_per_batch": fpb,
+        "overrides": " ".join(args.overrides),
+        "command": command,
+    }
     rounds: list[dict] = []
     t_start = time.perf_counter()
     try:
         for rnd in range(args.rounds):
             for t, n in configs:
                 for m in methods:
-                    spec = {"method": m, "threads": t, "num_envs": n, "batches": args.batches, "warmup": args.warmup,
-                            "seed": args.seed}
+                    spec = {
+                        "method": m,
+                        "threads": t,
+                        "num_envs": n,
+                        "batches": args.batches,
+                        "warmup": args.warmup,
+                        "seed": args.seed,
+                    }
                     if m == "baseline":
-                        spec["overrides"] = [*fixed, f"env.id={env_id}", f"ppo.frames_per_batch={fpb}",
-                                             f"run.threads={t}", f"run.total_frames={(args.warmup + args.batches) * fpb}"]
+                        spec["overrides"] = [
+                            *fixed,
+                            f"env.id={env_id}",
+                            f"ppo.frames_per_batch={fpb}",
+                            f"run.threads={t}",
+                            f"run.total_frames={(args.warmup + args.batches) * fpb}",
+                        ]
                     else:
-                        spec.update(recipe=recipes[m], tree=str(trees[m]), patch_envs=m == "old",
-                                    overrides=[*fixed, *args.overrides, f"run.threads={t}", f"env.num_envs={n}",
-                                               f"run.total_frames={(args.warmup + args.batches) * fpb}"])
+                        spec.update(
+                            recipe=recipes[m],
+                            tree=str(trees[m]),
+                            patch_envs=m == "old",
+                            overrides=[
+                                *fixed,
+                                *args.overrides,
+                                f"run.threads={t}",
+                                f"env.num_envs={n}",
+                                f"run.total_frames={(args.warmup + args.batches) * fpb}",
+                            ],
+                        )
                     res = run_job(spec, trees[m], args.job_timeout)
                     rounds.append({"round": rnd, "threads": t, "num_envs": n, "method": m, **res})
-                    msg = res.get("error") or (f"collect {res['collect_fps']:.0f}, update {res['update_fps']:.0f}, "
-                                               f"overall {res['overall_fps']:.0f} fps")
-                    print(f"[{time.perf_counter() - t_start:6.0f}s] round {rnd} | {t} thread(s) | {n} envs | {m}: "
-                          f"{msg}", flush=True)
+                    msg = res.get("error") or (
+                        f"collect {res['collect_fps']:.0f}, update {res['update_fps']:.0f}, "
+                        f"overall {res['overall_fps']:.0f} fps"
+                    )
+                    print(
+                        f"[{time.perf_counter() - t_start:6.0f}s] round {rnd} | {t} thread(s) | {n} envs | {m}: {msg}",
+                        flush=True,
+                    )
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     meta["load_end"] = _load()

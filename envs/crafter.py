@@ -75,9 +75,9 @@ from tensordict import TensorDictBase
 from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
-from freamer_rl.run.env_registry import EnvAdapter
-from freamer_rl_envs.single_env import EMPTY_SIZE, finish_td, unchanged_reset
 from freamer_rl.errors import EnvSetupError
+from freamer_rl.run.env_registry import EnvAdapter
+from freamer_rl_envs.single_env import finish_td, unchanged_reset
 
 try:
     import crafter
@@ -107,18 +107,50 @@ _MAX_SEED = 2**31 - 1
 
 #: Order of the ``"inventory"`` entries (crafter's ``constants.items``; every count is clamped to ``[0, 9]``).
 CRAFTER_INVENTORY: tuple[str, ...] = (
-    "health", "food", "drink", "energy", "sapling", "wood", "stone", "coal", "iron", "diamond",
-    "wood_pickaxe", "stone_pickaxe", "iron_pickaxe", "wood_sword", "stone_sword", "iron_sword",
-)  # fmt: skip
+    "health",
+    "food",
+    "drink",
+    "energy",
+    "sapling",
+    "wood",
+    "stone",
+    "coal",
+    "iron",
+    "diamond",
+    "wood_pickaxe",
+    "stone_pickaxe",
+    "iron_pickaxe",
+    "wood_sword",
+    "stone_sword",
+    "iron_sword",
+)
 INVENTORY_MAX = 9.0
 
 #: Order of the ``"achievements"`` entries (crafter's ``constants.achievements``, alphabetical).
 CRAFTER_ACHIEVEMENTS: tuple[str, ...] = (
-    "collect_coal", "collect_diamond", "collect_drink", "collect_iron", "collect_sapling", "collect_stone",
-    "collect_wood", "defeat_skeleton", "defeat_zombie", "eat_cow", "eat_plant", "make_iron_pickaxe",
-    "make_iron_sword", "make_stone_pickaxe", "make_stone_sword", "make_wood_pickaxe", "make_wood_sword",
-    "place_furnace", "place_plant", "place_stone", "place_table", "wake_up",
-)  # fmt: skip
+    "collect_coal",
+    "collect_diamond",
+    "collect_drink",
+    "collect_iron",
+    "collect_sapling",
+    "collect_stone",
+    "collect_wood",
+    "defeat_skeleton",
+    "defeat_zombie",
+    "eat_cow",
+    "eat_plant",
+    "make_iron_pickaxe",
+    "make_iron_sword",
+    "make_stone_pickaxe",
+    "make_stone_sword",
+    "make_wood_pickaxe",
+    "make_wood_sword",
+    "place_furnace",
+    "place_plant",
+    "place_stone",
+    "place_table",
+    "wake_up",
+)
 
 
 class CrafterNotInstalledError(EnvSetupError, ImportError):
@@ -229,8 +261,9 @@ class CrafterEnv(EnvBase):
         width, height = self._env_kwargs["size"]  # crafter's order; its frames are [height, width, 3]
         obs = {
             "pixels": Bounded(low=0, high=255, shape=(height, width, 3), dtype=torch.uint8, device=self.device),
-            "inventory": Bounded(low=0.0, high=INVENTORY_MAX, shape=(len(CRAFTER_INVENTORY),),
-                                 dtype=torch.float32, device=self.device),  # fmt: skip
+            "inventory": Bounded(
+                low=0.0, high=INVENTORY_MAX, shape=(len(CRAFTER_INVENTORY),), dtype=torch.float32, device=self.device
+            ),
             "achievements": Categorical(2, shape=(len(CRAFTER_ACHIEVEMENTS),), dtype=torch.bool, device=self.device),
         }
         if self.reward_history:
@@ -346,5 +379,6 @@ def _crafter_options(cfg: Any) -> dict[str, Any]:
 
 #: The ``crafter`` entry point of the ``freamer_rl.envs`` group. No success rule: Crafter has no single goal (see
 #: the module docstring); its metric is the Crafter score of :mod:`freamer_rl.run.crafter_score`.
-ADAPTER = EnvAdapter(make_env=make_crafter_env, options=_crafter_options, success=None,
-                     achievements=CRAFTER_ACHIEVEMENTS)
+ADAPTER = EnvAdapter(
+    make_env=make_crafter_env, options=_crafter_options, success=None, achievements=CRAFTER_ACHIEVEMENTS
+)

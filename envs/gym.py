@@ -85,15 +85,18 @@ def _check_env_id(env_id: str) -> None:
         try:
             importlib.import_module(module)
         except ImportError as err:
-            raise ValueError(f"the module {module!r} it names cannot be imported ({err}); is it installed or on "
-                             "PYTHONPATH?") from None  # fmt: skip
+            raise ValueError(
+                f"the module {module!r} it names cannot be imported ({err}); is it installed or on PYTHONPATH?"
+            ) from None
     if name in gymnasium.envs.registry:
         return
     close = difflib.get_close_matches(name, list(gymnasium.envs.registry), n=3, cutoff=0.6)
     hint = f"did you mean {', '.join(repr(c) for c in close)}? " if close else ""
     where = f"module {module!r} registers no such id; " if module else ""
-    raise ValueError(f"unknown gymnasium env id '{env_id}': {where}{hint}(any id in gymnasium.envs.registry, e.g. "
-                     "'CartPole-v1', 'my_module:MyEnv-v0', or list the registering module in env.imports)")
+    raise ValueError(
+        f"unknown gymnasium env id '{env_id}': {where}{hint}(any id in gymnasium.envs.registry, e.g. "
+        "'CartPole-v1', 'my_module:MyEnv-v0', or list the registering module in env.imports)"
+    )
 
 
 def _torchrl_holds(space: spaces.Space) -> bool:
@@ -112,8 +115,10 @@ def _without_unheld_entries(env: gymnasium.Env, env_id: str) -> gymnasium.Env:
     entries = space.spaces if isinstance(space, spaces.Dict) else {}
     kept = [k for k, s in entries.items() if _torchrl_holds(s)]
     if not kept:
-        raise ValueError(f"its observation space {space} has no TorchRL spec (supported: Box, Discrete, "
-                         "MultiDiscrete, MultiBinary and Dicts of them)")  # fmt: skip
+        raise ValueError(
+            f"its observation space {space} has no TorchRL spec (supported: Box, Discrete, "
+            "MultiDiscrete, MultiBinary and Dicts of them)"
+        )
     if env_id not in _reported_drops:
         _reported_drops.add(env_id)
         dropped = ", ".join(f"{k} ({type(s).__name__})" for k, s in entries.items() if k not in kept)
@@ -133,8 +138,9 @@ def make_gym_env(
     if int(reward_history) != reward_history or reward_history < 0:
         raise ValueError(f"reward_history: expected an integer >= 0, got {reward_history!r}")
     _check_env_id(env_id)
-    base = GymWrapper(_without_unheld_entries(gymnasium.make(env_id), env_id), categorical_action_encoding=True,
-                      device=device)  # fmt: skip
+    base = GymWrapper(
+        _without_unheld_entries(gymnasium.make(env_id), env_id), categorical_action_encoding=True, device=device
+    )
     transforms: list[Transform] = []
     doubles = [k for k, s in base.observation_spec.items(True, True) if s.dtype == torch.float64]
     if doubles:

@@ -92,9 +92,13 @@ from freamer_rl.data import (
     group_table,
     met_table,
 )
-
 from freamer_rl_envs.health_dynamics import (  # noqa: F401  (HealthDynamics and the updates are re-exported)
-    HealthDynamics, _load_tables, _SubjectTables, exertion, fatigue_update, hrv_update,
+    HealthDynamics,
+    _load_tables,
+    _SubjectTables,
+    exertion,
+    fatigue_update,
+    hrv_update,
 )
 
 logger = logging.getLogger(__name__)
@@ -125,16 +129,25 @@ DEFAULT_REWARD_WEIGHTS: tuple[float, float, float] = (2.0, 1.0, 0.5)
 #: Activity the **Change** action switches to, by current activity id.
 CHANGE_TO: dict[int, int] = {
     0: 4,  # transient -> walking
-    1: 4, 2: 4, 3: 4, 9: 4, 10: 4, 11: 4,  # rest -> walking
-    16: 4, 17: 4, 18: 4, 19: 4,  # household -> walking
+    1: 4,
+    2: 4,
+    3: 4,
+    9: 4,
+    10: 4,
+    11: 4,  # rest -> walking
+    16: 4,
+    17: 4,
+    18: 4,
+    19: 4,  # household -> walking
     4: 7,  # walking -> Nordic walking
     7: 6,  # Nordic walking -> cycling
     6: 4,  # cycling -> walking
-    12: 4, 13: 4,  # stairs -> walking
+    12: 4,
+    13: 4,  # stairs -> walking
     5: 6,  # running -> cycling
     20: 7,  # soccer -> Nordic walking
     24: 4,  # rope jumping -> walking
-}  # fmt: skip
+}
 
 
 class HealthEnv(EnvBase):
@@ -304,8 +317,13 @@ class HealthEnv(EnvBase):
             "violations": st.ep_viol[:, None].clone(),
             "length": st.steps[:, None].clone(),
         }
-        return {"imu": imu, "hr_features": feats, "heart_rate": hr[:, None].clone(), "activity": act,
-                "episode": episode}  # fmt: skip
+        return {
+            "imu": imu,
+            "hr_features": feats,
+            "heart_rate": hr[:, None].clone(),
+            "activity": act,
+            "episode": episode,
+        }
 
     def _to_td(self, out: dict[str, Any]) -> TensorDictBase:
         # shapes are fixed by construction: skip TensorDict's per-entry validation (a third of the step time)
@@ -496,9 +514,13 @@ def make_health_env(
             raise ValueError(f"subjects: expected numbers in 101..109, got {subjects!r}")
     dyn = dynamics or HealthDynamics()
     tables = _load_tables(
-        None if data_dir is None else str(data_dir), subj, float(rate_hz), float(synthetic_duration_s),
-        int(data_seed), dyn,
-    )  # fmt: skip
+        None if data_dir is None else str(data_dir),
+        subj,
+        float(rate_hz),
+        float(synthetic_duration_s),
+        int(data_seed),
+        dyn,
+    )
     return HealthEnv(
         tables,
         batch_size=batch_size,
@@ -508,4 +530,3 @@ def make_health_env(
         seed=seed,
         device=device,
     )
-

@@ -66,8 +66,9 @@ def fatigue_update(fatigue: torch.Tensor, e: torch.Tensor, dt: float, p: HRFeatu
     return fatigue + torch.where(e > fatigue, a_up, a_down) * (e - fatigue)
 
 
-def hrv_update(mean: torch.Tensor, var: torch.Tensor, hr: torch.Tensor, dt: float,
-               p: HRFeatureParams) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+def hrv_update(
+    mean: torch.Tensor, var: torch.Tensor, hr: torch.Tensor, dt: float, p: HRFeatureParams
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Exponentially weighted mean / variance of the heart rate (time constant ``tau_hrv_s``)."""
     b = 1.0 - math.exp(-dt / p.tau_hrv_s)
     d = hr - mean
@@ -105,14 +106,21 @@ def _subject_physiology(feat: Pamap2Features, info: dict, dyn: HealthDynamics) -
         gain = float(np.clip(np.median((feat.heart_rate[sel] - hr_rest) / (feat.met[sel] - 1.0)), 6.0, 18.0))
     else:
         gain = 11.0
-        logger.warning("subject %s: no activity with MET >= 3, using a default gain of %.0f bpm/MET", feat.subject,
-                       gain)  # fmt: skip
+        logger.warning(
+            "subject %s: no activity with MET >= 3, using a default gain of %.0f bpm/MET", feat.subject, gain
+        )
     return hr_rest, gain, dyn.default_tau_s, dyn.default_drift
 
 
 @functools.lru_cache(maxsize=8)
-def _load_tables(data_dir: str | None, subjects: tuple[int, ...] | None, rate_hz: float, synthetic_duration_s: float,
-                 data_seed: int, dyn: HealthDynamics) -> _SubjectTables:  # fmt: skip
+def _load_tables(
+    data_dir: str | None,
+    subjects: tuple[int, ...] | None,
+    rate_hz: float,
+    synthetic_duration_s: float,
+    data_seed: int,
+    dyn: HealthDynamics,
+) -> _SubjectTables:
     if data_dir is None:
         chosen = subjects or DEFAULT_SYNTHETIC_SUBJECTS
         recordings = {s: synthetic_recording(s, duration_s=synthetic_duration_s, seed=data_seed) for s in chosen}
@@ -155,10 +163,22 @@ def _load_tables(data_dir: str | None, subjects: tuple[int, ...] | None, rate_hz
             pool[i, a, : ix.size] = ix
             pool_n[i, a] = ix.size
     return _SubjectTables(
-        subjects=subj, rate_hz=float(feats[subj[0]].rate_hz), imu=imu, activity=act, hr=hr, fatigue=fat, hrv_std=hrv,
-        length=length, hr_rest=phys[:, 0], gain=phys[:, 1], tau=phys[:, 2], drift=phys[:, 3], posture=posture,
-        pool=pool, pool_n=pool_n,
-    )  # fmt: skip
+        subjects=subj,
+        rate_hz=float(feats[subj[0]].rate_hz),
+        imu=imu,
+        activity=act,
+        hr=hr,
+        fatigue=fat,
+        hrv_std=hrv,
+        length=length,
+        hr_rest=phys[:, 0],
+        gain=phys[:, 1],
+        tau=phys[:, 2],
+        drift=phys[:, 3],
+        posture=posture,
+        pool=pool,
+        pool_n=pool_n,
+    )
 
 
 # ----------------------------------------------------------------------------------------------------------------------

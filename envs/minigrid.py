@@ -89,17 +89,66 @@ _TOKEN_CACHE_SIZE = 4096
 # surfaces and the WFC envs). Order fixes the ids: append new words at the end only, never reorder.
 MINIGRID_VOCAB: tuple[str, ...] = (
     # colours (minigrid.core.constants.COLOR_TO_IDX)
-    "red", "green", "blue", "purple", "yellow", "grey",
+    "red",
+    "green",
+    "blue",
+    "purple",
+    "yellow",
+    "grey",
     # objects and places
-    "key", "ball", "box", "door", "goal", "square", "wall", "floor", "lava", "object", "room", "rooms", "maze",
-    "opening", "hallway", "end",
+    "key",
+    "ball",
+    "box",
+    "door",
+    "goal",
+    "square",
+    "wall",
+    "floor",
+    "lava",
+    "object",
+    "room",
+    "rooms",
+    "maze",
+    "opening",
+    "hallway",
+    "end",
     # verbs
-    "go", "get", "fetch", "pick", "up", "put", "open", "unlock", "use", "traverse", "reach", "avoid", "find",
-    "must", "matching",
+    "go",
+    "get",
+    "fetch",
+    "pick",
+    "up",
+    "put",
+    "open",
+    "unlock",
+    "use",
+    "traverse",
+    "reach",
+    "avoid",
+    "find",
+    "must",
+    "matching",
     # function words and locations
-    "the", "a", "to", "and", "then", "after", "you", "your", "near", "next", "from", "of", "at", "in", "on",
-    "front", "behind", "left", "right",
-)  # fmt: skip
+    "the",
+    "a",
+    "to",
+    "and",
+    "then",
+    "after",
+    "you",
+    "your",
+    "near",
+    "next",
+    "from",
+    "of",
+    "at",
+    "in",
+    "on",
+    "front",
+    "behind",
+    "left",
+    "right",
+)
 
 _GRID_HIGH = (max(OBJECT_TO_IDX.values()), max(COLOR_TO_IDX.values()), max(STATE_TO_IDX.values()))
 
@@ -128,8 +177,11 @@ def register_multiroom(env_id: str) -> bool:
         raise ValueError(
             f"{env_id}: MultiRoom sizes need 1 <= N <= {_MAX_MULTIROOM[0]} rooms and 4 <= S <= {_MAX_MULTIROOM[1]}"
         )
-    gymnasium.register(env_id, entry_point="minigrid.envs:MultiRoomEnv",
-                       kwargs={"minNumRooms": rooms, "maxNumRooms": rooms, "maxRoomSize": size})  # fmt: skip
+    gymnasium.register(
+        env_id,
+        entry_point="minigrid.envs:MultiRoomEnv",
+        kwargs={"minNumRooms": rooms, "maxNumRooms": rooms, "maxRoomSize": size},
+    )
     return True
 
 

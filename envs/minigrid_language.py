@@ -56,9 +56,23 @@ __all__ = [
 MINIGRID_MISSION_VOCAB = MissionVocabulary(
     objects=("goal", "key", "door", "ball", "box", "lava", "wall", "floor"),
     colors=tuple(COLOR_NAMES),
-    actions=("go", "get", "fetch", "pick", "open", "unlock", "put", "traverse", "find", "reach", "use", "avoid",
-             "toggle", "drop"),
-)  # fmt: skip
+    actions=(
+        "go",
+        "get",
+        "fetch",
+        "pick",
+        "open",
+        "unlock",
+        "put",
+        "traverse",
+        "find",
+        "reach",
+        "use",
+        "avoid",
+        "toggle",
+        "drop",
+    ),
+)
 
 #: Keys of the ``language_reward`` env option and their defaults (those of ``cfg.shaping.language``).
 LANGUAGE_REWARD_DEFAULTS: dict[str, Any] = {
@@ -164,8 +178,10 @@ class LanguageRewardTracker:
         self._matchers = [_matcher(t) for t in self.targets]
         self._criteria = [_criterion(t, i == last, parsed.actions) for i, t in enumerate(self.targets)]
         # the (type, colour) bytes of a target's cells in the observed image (type only when the colour is free)
-        self._patterns = [bytes((OBJECT_TO_IDX[t.object],) if t.color is None else
-                                (OBJECT_TO_IDX[t.object], COLOR_TO_IDX[t.color])) for t in self.targets]  # fmt: skip
+        self._patterns = [
+            bytes((OBJECT_TO_IDX[t.object],) if t.color is None else (OBJECT_TO_IDX[t.object], COLOR_TO_IDX[t.color]))
+            for t in self.targets
+        ]
         self._index = 0
         self._field: list[int] | None = None
         self._width = 0

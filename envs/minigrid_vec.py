@@ -63,10 +63,16 @@ class MiniGridVecEnv(EnvBase):
             raise ValueError(f"MiniGridVecEnv steps on the CPU; got device={device!r} (move batches afterwards)")
         n = int(num_envs)
         self.cores = [
-            MiniGridEnv(env_id, pixels=pixels, reward_history=reward_history, max_mission_tokens=max_mission_tokens,
-                        include_mission=False, language_reward=language_reward)
+            MiniGridEnv(
+                env_id,
+                pixels=pixels,
+                reward_history=reward_history,
+                max_mission_tokens=max_mission_tokens,
+                include_mission=False,
+                language_reward=language_reward,
+            )
             for _ in range(n)
-        ]  # fmt: skip
+        ]
         super().__init__(device="cpu", batch_size=torch.Size([n]))
         self.env_id = env_id
         one = self.cores[0]
@@ -148,4 +154,3 @@ class MiniGridVecEnv(EnvBase):
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}(env_id={self.env_id!r}, num_envs={self.num_envs})"
-

@@ -16,18 +16,34 @@ SRC = ROOT / "src" / "freamer_rl"
 
 #: the README's tiers: a module may import from its own tier and the ones below
 TIERS = {
-    "errors": 0, "torchvision_compat": 0, "__init__": 0,
-    "config": 1, "layers": 1, "data": 1,
+    "errors": 0,
+    "torchvision_compat": 0,
+    "__init__": 0,
+    "config": 1,
+    "layers": 1,
+    "data": 1,
     "run": 2,
-    "model": 3, "world_model": 3,
+    "model": 3,
+    "world_model": 3,
     "machinery": 4,
-    "health": 5, "trainers": 5,
+    "health": 5,
+    "trainers": 5,
     "experiments": 6,
     "cli": 7,
-}  # fmt: skip
+}
 #: what a function may import locally: optional dependencies (and matplotlib, slow to import, only for pictures)
-OPTIONAL = {"open_clip", "huggingface_hub", "transformers", "crafter", "ray", "wandb", "tensorboard", "matplotlib",
-            "torchvision", "freamer_rl.layers.clip_backbone"}  # the last: open_clip's wrapper
+OPTIONAL = {
+    "open_clip",
+    "huggingface_hub",
+    "transformers",
+    "crafter",
+    "ray",
+    "wandb",
+    "tensorboard",
+    "matplotlib",
+    "torchvision",
+    "freamer_rl.layers.clip_backbone",
+}  # the last: open_clip's wrapper
 
 
 def _module_name(path: Path) -> str:
@@ -38,10 +54,18 @@ def _module_name(path: Path) -> str:
 def _imports(path: Path) -> tuple[set[str], list[tuple[str, int]]]:
     """(every freamer_rl module it imports, [(module, line) of each import inside a function or class body])."""
     tree = ast.parse(path.read_text())
-    typing_only = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
-                   and getattr(node.test, "id", None) == "TYPE_CHECKING" for n in ast.walk(node)}  # fmt: skip
-    in_function = {id(n) for node in ast.walk(tree) if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
-                   for n in ast.walk(node)}  # fmt: skip
+    typing_only = {
+        id(n)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.If) and getattr(node.test, "id", None) == "TYPE_CHECKING"
+        for n in ast.walk(node)
+    }
+    in_function = {
+        id(n)
+        for node in ast.walk(tree)
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef))
+        for n in ast.walk(node)
+    }
     found, local = set(), []
     own = _module_name(path)
     package = own if path.name == "__init__.py" else own.rpartition(".")[0]
@@ -49,7 +73,9 @@ def _imports(path: Path) -> tuple[set[str], list[tuple[str, int]]]:
         if isinstance(node, ast.ImportFrom):
             base = node.module or ""
             if node.level:
-                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+                base = ".".join(
+                    package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else [])
+                )
             names = [f"{base}.{a.name}" for a in node.names] + [base]
         elif isinstance(node, ast.Import):
             names = [a.name for a in node.names]
@@ -89,15 +115,19 @@ def test_every_package_has_a_tier():
 
 @pytest.mark.parametrize("module", sorted(MODULES))
 def test_imports_run_down_the_tiers(module):
-    up = sorted(dep for dep in GRAPH[module] if _tier(dep) > _tier(module)
-                and not module.startswith(dep + "."))  # a package's face may import its own modules  # fmt: skip
+    up = sorted(
+        dep for dep in GRAPH[module] if _tier(dep) > _tier(module) and not module.startswith(dep + ".")
+    )  # a package's face may import its own modules
     assert not up, f"{module} (tier {_tier(module)}) imports a higher tier: {up}"
 
 
 @pytest.mark.parametrize("module", sorted(MODULES))
 def test_function_local_imports_are_optional_dependencies_only(module):
-    local = [(name, line) for name, line in _imports(MODULES[module])[1]
-             if name.split(".")[0] not in OPTIONAL and name not in OPTIONAL]
+    local = [
+        (name, line)
+        for name, line in _imports(MODULES[module])[1]
+        if name.split(".")[0] not in OPTIONAL and name not in OPTIONAL
+    ]
     assert not local, f"{MODULES[module].relative_to(ROOT)}: function-local imports {local}"
 
 
@@ -112,7 +142,7 @@ def test_no_import_cycle():
             if m.startswith(dep + "."):  # the package face imported by its own submodule's import machinery
                 continue
             if state.get(dep) == 1:
-                raise AssertionError("import cycle: " + " -> ".join(path[path.index(dep):] + [dep]))
+                raise AssertionError("import cycle: " + " -> ".join(path[path.index(dep) :] + [dep]))
             if dep not in state:
                 visit(dep)
         path.pop()

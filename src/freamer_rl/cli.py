@@ -52,7 +52,8 @@ def _parser() -> argparse.ArgumentParser:
     p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. optim.lr=3e-4 run.seed=1")
     p_train.add_argument("--run-dir", default=None, help="run directory (default: run.output_dir/run.name)")
     p_train.add_argument(
-        "--no-resume", action="store_true",
+        "--no-resume",
+        action="store_true",
         help="start from scratch; refused (nothing is deleted) when the run directory already holds checkpoints: "
         "use another run.name / --run-dir, or delete the old run yourself",
     )
@@ -62,7 +63,8 @@ def _parser() -> argparse.ArgumentParser:
     )
     p_chain.add_argument("chain", help="path to a chain YAML (freamer_rl.experiments.chain)")
     p_chain.add_argument(
-        "overrides", nargs="*",
+        "overrides",
+        nargs="*",
         help="dotted overrides: a chain-file key (name, seed, output_dir, overrides, stages) edits the chain file, "
         "e.g. seed=1; any other key goes to every stage after the stage's own, so it wins, e.g. "
         "run.total_frames=2048 shrinks every stage",
@@ -83,11 +85,16 @@ def _parser() -> argparse.ArgumentParser:
     p_eval.add_argument("--deterministic", action="store_true", help="argmax actions instead of sampling")
     p_eval.add_argument("--num-envs", type=int, default=None)
     p_eval.add_argument("--seed", type=int, default=12345)
-    p_eval.add_argument("--corrupt", action="append", default=None, metavar="KEY:KIND:LEVEL",
-                        help="corrupt an observation during evaluation, e.g. pixels:gaussian:1.0, grid:salt:0.3, "
-                             "grid:dropout:0.5, direction:stale:4, pixels:noisy_tv:0.25, or embed.state:gaussian:4 "
-                             "(noise on a Layer-1 embedding, Table 13); repeatable; replaces the recipe's env.corrupt "
-                             "entries for evaluation (--corrupt none: a clean evaluation)")
+    p_eval.add_argument(
+        "--corrupt",
+        action="append",
+        default=None,
+        metavar="KEY:KIND:LEVEL",
+        help="corrupt an observation during evaluation, e.g. pixels:gaussian:1.0, grid:salt:0.3, "
+        "grid:dropout:0.5, direction:stale:4, pixels:noisy_tv:0.25, or embed.state:gaussian:4 "
+        "(noise on a Layer-1 embedding, Table 13); repeatable; replaces the recipe's env.corrupt "
+        "entries for evaluation (--corrupt none: a clean evaluation)",
+    )
 
     p_health = sub.add_parser(
         "health", help="wearable-health: anomaly report (and train, an alias of freamer-rl train)", add_help=False
@@ -112,16 +119,25 @@ def _run(args: argparse.Namespace) -> int:
     if args.command == "chain":
         rows = run_chain(args.chain, args.overrides)
         last, rate = rows[-1], rows[-1]["final_success_rate"]
-        logger.info("chain finished: %d stages, %d frames, last stage success %s | %s", len(rows), last["chain_frames"],
-                    "n/a" if rate is None else f"{rate:.3f}", Path(last["run_dir"]).parent / "chain_summary.md")
+        logger.info(
+            "chain finished: %d stages, %d frames, last stage success %s | %s",
+            len(rows),
+            last["chain_frames"],
+            "n/a" if rate is None else f"{rate:.3f}",
+            Path(last["run_dir"]).parent / "chain_summary.md",
+        )
         return 0
     if args.command == "suite":
         return _suite(args)
     if args.command == "eval":
         options = {} if args.corrupt is None else {"corrupt": parse_corruptions(args.corrupt)}
         result = evaluate_any(
-            args.checkpoint, episodes=args.episodes, deterministic=args.deterministic, num_envs=args.num_envs,
-            seed=args.seed, **options,
+            args.checkpoint,
+            episodes=args.episodes,
+            deterministic=args.deterministic,
+            num_envs=args.num_envs,
+            seed=args.seed,
+            **options,
         )
         sys.stdout.write(json.dumps(result, indent=2, default=str) + "\n")
         return 0
@@ -141,37 +157,50 @@ def _suite(args: argparse.Namespace) -> int:
         suite, root, runs = plan_suite(args.suite, args.output)
         lines = [f"suite {suite.name}: {len(runs)} runs -> {root}"]
         for r in describe(runs):
-            state = {"new": "new", "done": f"done ({r['frames']:,} frames)",
-                     "partial": f"partial ({r['frames']:,} frames)"}.get(r["status"], f"failed: {r['error']}")
+            state = {
+                "new": "new",
+                "done": f"done ({r['frames']:,} frames)",
+                "partial": f"partial ({r['frames']:,} frames)",
+            }.get(r["status"], f"failed: {r['error']}")
             lines.append(f"  {r['label']:<20} {r['env']:<32} seed {r['seed']:<3} {state}")
         sys.stdout.write("\n".join(lines) + "\n")
         return 0
     result = run_suite(args.suite, jobs=args.jobs, output=args.output, report_only=args.report_only)
     sys.stdout.write(f"{Path(result['output']) / 'summary.md'}\n")
     if result["failed"]:
-        sys.stderr.write(f"{len(result['failed'])} of {len(result['runs'])} runs failed (see runs.csv): "
-                         f"{', '.join(result['failed'])}\n")
+        sys.stderr.write(
+            f"{len(result['failed'])} of {len(result['runs'])} runs failed (see runs.csv): "
+            f"{', '.join(result['failed'])}\n"
+        )
         return 0 if args.report_only else 1
     return 0
 
 
 #: how torch reports a failed allocation (CPU: "[enforce fail at alloc_cpu.cpp] ... DefaultCPUAllocator: not enough
 #: memory"; CUDA: "CUDA out of memory")
-_ALLOCATION_FAILURES = ("not enough memory", "[enforce fail", "out of memory", "defaultcpuallocator",
-                        "cannot allocate memory")
+_ALLOCATION_FAILURES = (
+    "not enough memory",
+    "[enforce fail",
+    "out of memory",
+    "defaultcpuallocator",
+    "cannot allocate memory",
+)
 
 
 def allocation_failure(err: BaseException) -> str | None:
     """The one ``error:`` line for an allocation that failed (a size in the recipe too large for the machine), or
     None when ``err`` is something else."""
     text = " ".join(str(err).split())
-    if not isinstance(err, MemoryError) and not (isinstance(err, RuntimeError)
-                                                 and any(p in text.lower() for p in _ALLOCATION_FAILURES)):
+    if not isinstance(err, MemoryError) and not (
+        isinstance(err, RuntimeError) and any(p in text.lower() for p in _ALLOCATION_FAILURES)
+    ):
         return None
     shown = text if len(text) <= 160 else text[:157] + "..."
-    return (f"out of memory ({type(err).__name__}: {shown or 'no details'}): a size in the recipe is too large for "
-            "this machine (e.g. model.embed_dim, model.head_hidden, network.hidden, a batch, sequence or buffer "
-            "size); lower it (--debug shows where it was allocated)")
+    return (
+        f"out of memory ({type(err).__name__}: {shown or 'no details'}): a size in the recipe is too large for "
+        "this machine (e.g. model.embed_dim, model.head_hidden, network.hidden, a batch, sequence or buffer "
+        "size); lower it (--debug shows where it was allocated)"
+    )
 
 
 def parse_corruptions(specs: list[str]) -> list[CorruptionConfig]:
@@ -179,7 +208,7 @@ def parse_corruptions(specs: list[str]) -> list[CorruptionConfig]:
     if specs == ["none"]:
         return []
     entries = []
-    for i, spec in enumerate(specs):
+    for spec in specs:
         parts = spec.rsplit(":", 2)
         try:
             key, kind, level = parts[0], parts[1], float(parts[2])
@@ -195,12 +224,18 @@ def main(argv: list[str] | None = None) -> int:
     args, unknown = parser.parse_known_args(argv)
     if args.command == "health":  # its own parser takes everything after "health", options included
         args.health_args = unknown + args.health_args
-    elif args.command in ("train", "params", "chain") and unknown and all("=" in a and not a.startswith("-") for a in unknown):
+    elif (
+        args.command in ("train", "params", "chain")
+        and unknown
+        and all("=" in a and not a.startswith("-") for a in unknown)
+    ):
         # overrides after an option (train recipe.yaml --run-dir D optim.lr=1e-3): argparse leaves them unparsed
         args.overrides = list(args.overrides) + unknown
     elif unknown:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
-    logging.basicConfig(level=getattr(logging, args.log_level), format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=getattr(logging, args.log_level), format="%(asctime)s %(levelname)s %(name)s: %(message)s"
+    )
     try:
         return _run(args)
     except FreamerError as err:

@@ -91,7 +91,8 @@ def import_torchvision_safely() -> ModuleType | None:
             "torchvision's C++ operators could not load (%s; likely a CUDA torchvision build beside torch %s): "
             "declaring the schemas of torchvision::nms/qnms so that torchvision's Python parts import; open_clip "
             "and transformers do not use those operators, and calling them raises",
-            _first_line(exc), torch.__version__,
+            _first_line(exc),
+            torch.__version__,
         )
         _forget_modules("torchvision")
         _declare_torchvision_schemas()

@@ -47,16 +47,21 @@ def test_gym_ppo_mlp_recipe_differs_from_freamer_only_in_the_network(task):
     _, freamer = load_recipe(ROOT / "recipes" / "gym" / f"{task}.yaml")
     name, mlp = load_recipe(ROOT / "recipes" / "baselines" / f"ppo_mlp_{task}.yaml")
     assert name == "ppo_baseline" and mlp.network.kind == "mlp" and mlp.network.observation_keys == ["observation"]
-    assert (mlp.env.adapter, mlp.env.id, mlp.env.num_envs) == (freamer.env.adapter, freamer.env.id,
-                                                               freamer.env.num_envs)  # fmt: skip
+    assert (mlp.env.adapter, mlp.env.id, mlp.env.num_envs) == (
+        freamer.env.adapter,
+        freamer.env.id,
+        freamer.env.num_envs,
+    )
     fields = [f for f in vars(freamer.ppo) if f != "sequence_length"]  # PPO-MLP steps need no sequence layout
     assert {f: getattr(mlp.ppo, f) for f in fields} == {f: getattr(freamer.ppo, f) for f in fields}
     assert vars(mlp.optim) == vars(freamer.optim)
     assert mlp.run.total_frames == freamer.run.total_frames
 
 
-@pytest.mark.parametrize("recipe,init", [("ppo_mlp_n2s4", "torch_default"), ("ppo_mlp_cartpole", "torch_default"),
-                                         ("impala_n2s4", "orthogonal")])  # fmt: skip
+@pytest.mark.parametrize(
+    "recipe,init",
+    [("ppo_mlp_n2s4", "torch_default"), ("ppo_mlp_cartpole", "torch_default"), ("impala_n2s4", "orthogonal")],
+)
 def test_baseline_recipes_build_the_init_they_name(recipe, init):
     """PyTorch's init: every Linear weight and bias inside U(+-1/sqrt(fan_in)), biases not zero; orthogonal: zero
     biases and the encoder's weight orthogonal with gain sqrt 2."""
@@ -86,10 +91,13 @@ def _suite_file(tmp_path: Path, body: str) -> Path:
 def test_gym_suite_trains_ppo_baseline_discrete_and_continuous(tmp_path):
     """The gym suites' PPO-MLP (CartPole's categorical head, Pendulum's TanhNormal one) trains through
     ``freamer-rl suite``, reports a return, and a rerun trains nothing."""
-    path = _suite_file(tmp_path, "name: gym_smoke\nseeds: [0]\ntotal_frames: 512\n"
-                       "overrides: [env.num_envs=2, ppo.frames_per_batch=256, ppo.minibatch_size=128, ppo.epochs=1]\n"
-                       "entries:\n  - {label: cartpole, recipe: RECIPES/baselines/ppo_mlp_cartpole.yaml}\n"
-                       "  - {label: pendulum, recipe: RECIPES/baselines/ppo_mlp_pendulum.yaml}\n")  # fmt: skip
+    path = _suite_file(
+        tmp_path,
+        "name: gym_smoke\nseeds: [0]\ntotal_frames: 512\n"
+        "overrides: [env.num_envs=2, ppo.frames_per_batch=256, ppo.minibatch_size=128, ppo.epochs=1]\n"
+        "entries:\n  - {label: cartpole, recipe: RECIPES/baselines/ppo_mlp_cartpole.yaml}\n"
+        "  - {label: pendulum, recipe: RECIPES/baselines/ppo_mlp_pendulum.yaml}\n",
+    )
     out = run_suite(path, jobs=1, output=tmp_path / "out")
     assert out["failed"] == [] and len(out["trained"]) == 2
     rows = {r["label"]: r for r in out["runs"]}
@@ -120,29 +128,52 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
     records = []
     for label, rets in returns.items():
         for seed, ret in enumerate(rets):
-            records.append(_health_run(tmp_path, label, seed, {
-                "eval_return_mean": ret, "eval_violations_mean": 0.5 * seed, "recon_mse": 0.25,
-                "imagination_horizon": 10.0 + seed, "params_encoder": 1234 if label == "mlp" else 5678}))
+            records.append(
+                _health_run(
+                    tmp_path,
+                    label,
+                    seed,
+                    {
+                        "eval_return_mean": ret,
+                        "eval_violations_mean": 0.5 * seed,
+                        "recon_mse": 0.25,
+                        "imagination_horizon": 10.0 + seed,
+                        "params_encoder": 1234 if label == "mlp" else 5678,
+                    },
+                )
+            )
     write_report(tmp_path, "health_demo", records)
     text = (tmp_path / "summary.md").read_text()
     assert "## Health world model (paper Table 15)" in text
     table = text.split("## Health world model (paper Table 15)")[1]
     rows = {line.split(" | ")[0].strip("| "): line for line in table.splitlines() if line.startswith("| ")}
     mlp, foundation = returns["mlp"], returns["foundation"]
-    assert f"| mlp | 3 | {statistics.mean(mlp):.1f} +- {statistics.stdev(mlp):.1f} | 0.50 +- 0.50 | 0.250 +- 0.000 " \
-           f"| 11.0 +- 1.0 | 1,234 |  |" in rows["mlp"]
+    assert (
+        f"| mlp | 3 | {statistics.mean(mlp):.1f} +- {statistics.stdev(mlp):.1f} | 0.50 +- 0.50 | 0.250 +- 0.000 "
+        f"| 11.0 +- 1.0 | 1,234 |  |" in rows["mlp"]
+    )
     delta = statistics.mean(foundation) - statistics.mean(mlp)
     assert rows["foundation"].endswith(f"| 5,678 | {delta:+.1f} |")
     header = (tmp_path / "runs.csv").read_text().splitlines()[0].split(",")
-    assert header[-7:] == ["eval_return_mean", "eval_violations_mean", "recon_mse", "imagination_horizon",
-                           "params_encoder", "error", "run_dir"]  # fmt: skip
+    assert header[-7:] == [
+        "eval_return_mean",
+        "eval_violations_mean",
+        "recon_mse",
+        "imagination_horizon",
+        "params_encoder",
+        "error",
+        "run_dir",
+    ]
 
 
 def test_health_quick_suite_trains_and_tables_a_real_health_run(tmp_path):
     """health_quick's sizes, one encoder and seed: the health trainer's summary.json feeds the Table 15 section."""
     quick = load_suite(ROOT / "recipes" / "suites" / "health_quick.yaml")
-    path = _suite_file(tmp_path, f"name: health_smoke\nseeds: [0]\noverrides: {json.dumps(quick.overrides)}\n"
-                       "entries:\n  - {label: mlp, recipe: RECIPES/health/health_mlp.yaml}\n")  # fmt: skip
+    path = _suite_file(
+        tmp_path,
+        f"name: health_smoke\nseeds: [0]\noverrides: {json.dumps(quick.overrides)}\n"
+        "entries:\n  - {label: mlp, recipe: RECIPES/health/health_mlp.yaml}\n",
+    )
     out = run_suite(path, jobs=1, output=tmp_path / "out")
     assert out["failed"] == [] and out["trained"] == ["mlp/pamap2-health/seed0"]
     summary = json.loads((Path(out["runs"][0]["run_dir"]) / "summary.json").read_text())
@@ -166,8 +197,10 @@ def test_curriculum_benchmark_reports_chain_frames_and_reads_back(tmp_path):
 
     shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
     chain = tmp_path / "c.chain.yaml"
-    chain.write_text("name: demo\nstages:\n  - {name: a, recipe: tiny.yaml}\n"
-                     "  - {name: b, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n")
+    chain.write_text(
+        "name: demo\nstages:\n  - {name: a, recipe: tiny.yaml}\n"
+        "  - {name: b, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n"
+    )
     out = tmp_path / "out"
     text = curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])
     assert "| 0 | a 256 |" in text and "MiniGrid-MultiRoom-N1-S4-v0" in text

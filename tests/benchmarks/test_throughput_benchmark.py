@@ -15,16 +15,32 @@ import throughput_benchmark as tb  # noqa: E402
 
 def test_throughput_benchmark_writes_tables(tmp_path):
     """One round, one thread, 16 envs, one timed batch: current code + baseline; 256 envs is skipped with a note."""
-    text = tb.main(["--rounds", "1", "--batches", "1", "--threads", "1", "--num-envs", "16", "256", "--skip-old",
-                    "--out", str(tmp_path)])
+    text = tb.main(
+        [
+            "--rounds",
+            "1",
+            "--batches",
+            "1",
+            "--threads",
+            "1",
+            "--num-envs",
+            "16",
+            "256",
+            "--skip-old",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     assert (tmp_path / "results.md").read_text() == text
     assert "FreamerV1 current" in text and "TorchRL PPO-MLP" in text and "overall vs baseline" in text
     assert "env.num_envs=256 skipped" in text and "sequence_length" in text
     with (tmp_path / "results.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert list(rows[0]) == tb.CSV_FIELDS
-    assert [(r["method"], r["threads"], r["num_envs"]) for r in rows] == [("current", "1", "16"),
-                                                                         ("baseline", "1", "16")]
+    assert [(r["method"], r["threads"], r["num_envs"]) for r in rows] == [
+        ("current", "1", "16"),
+        ("baseline", "1", "16"),
+    ]
     for r in rows:
         for m in tb.METRICS:
             assert float(r[f"{m}_min"]) <= float(r[f"{m}_mean"]) <= float(r[f"{m}_max"])
@@ -45,8 +61,17 @@ def test_ratios_are_per_round_and_old_rows_appear(tmp_path):
     rounds = []
     for rnd, (cur, old, base) in enumerate([(100.0, 50.0, 200.0), (300.0, 100.0, 300.0)]):
         for m, v in (("current", cur), ("old", old), ("baseline", base)):
-            rounds.append({"round": rnd, "threads": 1, "num_envs": 16, "method": m, "collect_fps": 2 * v,
-                           "update_fps": 2 * v, "overall_fps": v})
+            rounds.append(
+                {
+                    "round": rnd,
+                    "threads": 1,
+                    "num_envs": 16,
+                    "method": m,
+                    "collect_fps": 2 * v,
+                    "update_fps": 2 * v,
+                    "overall_fps": v,
+                }
+            )
     rounds.append({"round": 2, "threads": 1, "num_envs": 16, "method": "old", "error": "exit 1: boom"})
     codes = {"current": "abc", "old": "411f9a7", "baseline": "ppo_baseline"}
     rows = tb.summarise(rounds, [(1, 16)], ["current", "old", "baseline"], codes)
@@ -54,8 +79,19 @@ def test_ratios_are_per_round_and_old_rows_appear(tmp_path):
     assert cur["overall_fps_mean"] == 200.0 and (cur["overall_fps_min"], cur["overall_fps_max"]) == (100.0, 300.0)
     assert cur["overall_vs_old"] == pytest.approx((2.0 + 3.0) / 2)  # not 200 / 75
     assert cur["overall_vs_baseline"] == pytest.approx((0.5 + 1.0) / 2)
-    meta = {"date": "now", "machine": "test", "load_start": "0", "load_end": "0", "codes": codes, "rounds": 2,
-            "batches": 1, "warmup": 1, "frames_per_batch": 2048, "overrides": "", "command": "x"}
+    meta = {
+        "date": "now",
+        "machine": "test",
+        "load_start": "0",
+        "load_end": "0",
+        "codes": codes,
+        "rounds": 2,
+        "batches": 1,
+        "warmup": 1,
+        "frames_per_batch": 2048,
+        "overrides": "",
+        "command": "x",
+    }
     text = tb.write_report(rows, rounds, [], tmp_path, meta)
     assert "FreamerV1 old" in text and "2.50 (2.00-3.00)" in text and "boom" in text
 

@@ -60,10 +60,25 @@ def test_a_size_beyond_the_bound_is_refused_at_load(capsys):
 def test_a_model_too_large_to_allocate_is_one_line(tmp_path):
     """Sizes within the bounds that still do not fit in memory (a 3 x 16k -> 16k concat MLP: 3.2 GB, under a
     limited address space): the allocation failure is named, no traceback."""
-    done = subprocess.run([sys.executable, "-m", "freamer_rl.cli", "train", str(RECIPES / "tiny.yaml"),
-                           "model.embed_dim=16384", "model.fusion=concat", "model.fusion_hidden=16384",
-                           "model.fno.modes=8", "--run-dir", str(tmp_path / "run")],
-                          capture_output=True, text=True, timeout=300, preexec_fn=_limit_address_space)  # fmt: skip
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "freamer_rl.cli",
+            "train",
+            str(RECIPES / "tiny.yaml"),
+            "model.embed_dim=16384",
+            "model.fusion=concat",
+            "model.fusion_hidden=16384",
+            "model.fno.modes=8",
+            "--run-dir",
+            str(tmp_path / "run"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        preexec_fn=_limit_address_space,
+    )
     assert done.returncode == 2, done.stderr[-2000:]
     err = done.stderr.strip().splitlines()
     assert err[-1].startswith("error: out of memory (") and "too large" in err[-1]

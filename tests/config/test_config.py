@@ -9,8 +9,11 @@ from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 from freamer_rl.trainers.registry import load_config
 
 _RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes"
-RECIPES = [r for r in sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))
-           if not r.name.endswith(".chain.yaml")]  # chain files: tests/test_chain.py
+RECIPES = [
+    r
+    for r in sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))
+    if not r.name.endswith(".chain.yaml")
+]  # chain files: tests/test_chain.py
 
 
 def test_defaults_load():
@@ -28,7 +31,9 @@ def test_every_recipe_validates(recipe):
 
 
 def test_overrides_are_typed(tmp_path):
-    cfg = load_config(None, ["optim.lr=3e-4", "run.seed=7", "model.modalities=[state, reward]", "model.dnc.enabled=false"])
+    cfg = load_config(
+        None, ["optim.lr=3e-4", "run.seed=7", "model.modalities=[state, reward]", "model.dnc.enabled=false"]
+    )
     assert cfg.optim.lr == pytest.approx(3e-4)
     assert cfg.run.seed == 7
     assert cfg.model.modalities == ["state", "reward"]

@@ -15,8 +15,11 @@ from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 from freamer_rl.trainers.registry import TRAINERS, load_config
 
 _RECIPE_DIR = Path(__file__).resolve().parents[2] / "recipes"
-RECIPES = [r for r in sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))
-           if not r.name.endswith(".chain.yaml")]  # chain files: tests/test_chain.py
+RECIPES = [
+    r
+    for r in sorted(_RECIPE_DIR.glob("*.yaml")) + sorted((_RECIPE_DIR / "gym").glob("*.yaml"))
+    if not r.name.endswith(".chain.yaml")
+]  # chain files: tests/test_chain.py
 
 # (overrides, the dotted field the error must name)
 BAD = [

@@ -11,8 +11,11 @@ from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
-RECIPES = [r for r in sorted((ROOT / "recipes").glob("*.yaml")) + sorted((ROOT / "recipes" / "gym").glob("*.yaml"))
-           if not r.name.endswith(".chain.yaml")]  # chains: tests/test_chain.py
+RECIPES = [
+    r
+    for r in sorted((ROOT / "recipes").glob("*.yaml")) + sorted((ROOT / "recipes" / "gym").glob("*.yaml"))
+    if not r.name.endswith(".chain.yaml")
+]  # chains: tests/test_chain.py
 
 SHRINK = [
     "env.num_envs=2",

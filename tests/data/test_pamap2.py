@@ -144,8 +144,12 @@ def _malformed_cases(lines: list[str]):
         "non_numeric": ("\n".join(_edit(lines, 99, 12, "abc")), 100, 13, "non-numeric value 'abc'"),
         "non_numeric_hr": ("\n".join(_edit(lines, 5, 2, "fast")), 6, 3, "non-numeric value 'fast'"),
         "glued_numbers": ("\n".join(_edit(lines, 1500, 30, "1.5-2")), 1501, 31, "non-numeric"),
-        "truncated_last_row": ("\n".join(lines[:-1] + [" ".join(lines[-1].split(" ")[:17])]), n, None,
-                               "truncated last row"),  # fmt: skip
+        "truncated_last_row": (
+            "\n".join(lines[:-1] + [" ".join(lines[-1].split(" ")[:17])]),
+            n,
+            None,
+            "truncated last row",
+        ),
         "truncated_last_row_newline": ("\n".join(lines[:-1] + [lines[-1][:25]]) + "\n", n, None, "truncated"),
         "empty_file": ("", 1, None, "empty file"),
         "blank_line": ("\n".join(blank), 31, None, "blank line"),

@@ -76,8 +76,13 @@ def big_files(tmp_path_factory) -> dict:
 
 
 def _parse_in_subprocess(path: Path, validate_first: bool) -> dict:
-    out = subprocess.run([sys.executable, "-c", _CHILD, str(path), "1" if validate_first else "0"],
-                         capture_output=True, text=True, timeout=120, check=True)  # fmt: skip
+    out = subprocess.run(
+        [sys.executable, "-c", _CHILD, str(path), "1" if validate_first else "0"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=True,
+    )
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -89,8 +94,9 @@ def _float32_bytes(rows: int) -> int:
 def test_malformed_big_file_errors_in_bounded_memory(big_files, validate_first):
     res = _parse_in_subprocess(big_files["malformed"], validate_first)
     line = big_files["bad_line"]
-    assert res["line"] == line and res["error"].endswith(f"line {line}: column 21: non-numeric value '1.2.3' "
-                                                         "(expected a number or NaN)")  # fmt: skip
+    assert res["line"] == line and res["error"].endswith(
+        f"line {line}: column 21: non-numeric value '1.2.3' (expected a number or NaN)"
+    )
     read_so_far = _float32_bytes(line - 1)
     size = big_files["malformed"].stat().st_size
     for key in ("rss_increase", "traced_peak"):

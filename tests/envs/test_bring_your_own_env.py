@@ -51,16 +51,26 @@ class DictEnv(gym.Env):
 gym.register("{env_id}", entry_point="{module}:DictEnv")
 '''
 
-TINY = {"env": {"adapter": "gym", "num_envs": 2},
-        "model": {"embed_dim": 32, "head_hidden": 32, "flow": {"hidden": 32, "steps": 2}, "fno": {"modes": 8},
-                  "dnc": {"memory_slots": 8, "memory_width": 16}, "state": {"channels": 8, "modes": 6}},
-        "ppo": {"frames_per_batch": 64, "sequence_length": 8, "minibatch_size": 32, "epochs": 1},
-        "run": {"total_frames": 128}, "logging": {"checkpoint_every_frames": 128, "progress_bar": False}}  # fmt: skip
+TINY = {
+    "env": {"adapter": "gym", "num_envs": 2},
+    "model": {
+        "embed_dim": 32,
+        "head_hidden": 32,
+        "flow": {"hidden": 32, "steps": 2},
+        "fno": {"modes": 8},
+        "dnc": {"memory_slots": 8, "memory_width": 16},
+        "state": {"channels": 8, "modes": 6},
+    },
+    "ppo": {"frames_per_batch": 64, "sequence_length": 8, "minibatch_size": 32, "epochs": 1},
+    "run": {"total_frames": 128},
+    "logging": {"checkpoint_every_frames": 128, "progress_bar": False},
+}
 
 
 def _user_module(tmp_path: Path, monkeypatch, module: str, env_id: str) -> None:
-    (tmp_path / f"{module}.py").write_text(textwrap.dedent(ENV_MODULE).replace("{module}", module)
-                                           .replace("{env_id}", env_id))  # fmt: skip
+    (tmp_path / f"{module}.py").write_text(
+        textwrap.dedent(ENV_MODULE).replace("{module}", module).replace("{env_id}", env_id)
+    )
     monkeypatch.syspath_prepend(str(tmp_path))
 
 
@@ -100,12 +110,17 @@ def test_a_minigrid_id_through_the_gym_adapter_trains(tmp_path):
     """MiniGrid's mission (a MissionSpace) is left out; its image and direction feed the state modality."""
     env = make_gym_env("minigrid:MiniGrid-Empty-5x5-v0")
     assert set(env.observation_spec.keys()) == {"image", "direction"}
-    summary = _train(tmp_path, {"id": "minigrid:MiniGrid-Empty-5x5-v0"},
-                     {"modalities": ["state"], "observation_keys": {"state": ["image", "direction"]}})
+    summary = _train(
+        tmp_path,
+        {"id": "minigrid:MiniGrid-Empty-5x5-v0"},
+        {"modalities": ["state"], "observation_keys": {"state": ["image", "direction"]}},
+    )
     assert summary["frames"] == 128 and set(summary["gates"]) == {"state"}
 
 
 def test_a_module_that_cannot_be_imported_is_one_line():
-    with pytest.raises(EnvSetupError, match=r"env.id 'no_such_user_module:X-v0' .*module 'no_such_user_module'") as info:
+    with pytest.raises(
+        EnvSetupError, match=r"env.id 'no_such_user_module:X-v0' .*module 'no_such_user_module'"
+    ) as info:
         env_registry.make_env("gym", "no_such_user_module:X-v0")
     assert "\n" not in str(info.value)

@@ -23,11 +23,11 @@ from torchrl.envs import EnvCreator, ParallelEnv
 from torchrl.envs.utils import check_env_specs
 
 import freamer_rl_envs.crafter as crafter_adapter
-from freamer_rl.run import env_registry
-from freamer_rl.trainers.minigrid_ppo import FreamerConfig
-from freamer_rl.run.crafter_score import CrafterScore, crafter_score
 from freamer_rl.errors import EnvSetupError
 from freamer_rl.model.modalities import check_observation_keys
+from freamer_rl.run import env_registry
+from freamer_rl.run.crafter_score import CrafterScore, crafter_score
+from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 from freamer_rl_envs.crafter import (
     ADAPTER,
     CRAFTER_ACHIEVEMENTS,
@@ -321,8 +321,11 @@ def test_write_report(tmp_path, log_scale):
     ach[:2, CRAFTER_ACHIEVEMENTS.index("wake_up")] = True
     score.update(_batch(torch.ones(4, 1, dtype=torch.bool), ach))
     paths = score.write_report(tmp_path, log_scale=log_scale)
-    assert {p.name for p in paths.values()} == {"crafter_score.json", "crafter_achievements.md",
-                                                "crafter_achievements.png"}  # fmt: skip
+    assert {p.name for p in paths.values()} == {
+        "crafter_score.json",
+        "crafter_achievements.md",
+        "crafter_achievements.png",
+    }
     data = json.loads(paths["json"].read_text())
     assert data["episodes"] == 4 and data["score"] == pytest.approx(score.score())
     assert data["success_rates_percent"]["collect_wood"] == 100.0 and data["success_rates_percent"]["wake_up"] == 50.0

@@ -7,8 +7,8 @@ import torch
 from torchrl.envs import SerialEnv
 from torchrl.envs.utils import check_env_specs
 
-from freamer_rl.run import env_registry
 from freamer_rl.errors import EnvSetupError
+from freamer_rl.run import env_registry
 from freamer_rl_envs.gym import RewardHistory, make_gym_env
 
 
@@ -86,8 +86,14 @@ def test_eval_of_a_gym_run_reports_no_success_rate(tmp_path, capsys):
 
     recipe = Path(__file__).resolve().parents[2] / "recipes" / "gym" / "cartpole.yaml"
     run = tmp_path / "run"
-    overrides = ["env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32", "ppo.epochs=1",
-                 "run.total_frames=64", "logging.progress_bar=false"]
+    overrides = [
+        "env.num_envs=2",
+        "ppo.frames_per_batch=64",
+        "ppo.minibatch_size=32",
+        "ppo.epochs=1",
+        "run.total_frames=64",
+        "logging.progress_bar=false",
+    ]
     assert cli.main(["train", str(recipe), *overrides, "--run-dir", str(run)]) == 0
     capsys.readouterr()
     assert cli.main(["eval", str(run), "--episodes", "4", "--num-envs", "2"]) == 0

@@ -9,6 +9,13 @@ import pytest
 import torch
 from torchrl.envs.utils import check_env_specs, step_mdp
 
+from freamer_rl.data import (
+    HRFeatureParams,
+    hr_feature_sequence,
+    pamap2_features,
+    synthetic_recording,
+    write_synthetic_pamap2,
+)
 from freamer_rl_envs.health import (
     ALERT,
     CHANGE,
@@ -21,13 +28,6 @@ from freamer_rl_envs.health import (
     fatigue_update,
     hrv_update,
     make_health_env,
-)
-from freamer_rl.data import (
-    HRFeatureParams,
-    hr_feature_sequence,
-    pamap2_features,
-    synthetic_recording,
-    write_synthetic_pamap2,
 )
 
 DUR = 600.0  # synthetic seconds per subject in these tests (one cached data build for the whole file)

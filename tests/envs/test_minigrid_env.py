@@ -12,8 +12,8 @@ from tensordict import TensorDict
 from torchrl.envs import EnvCreator, InitTracker, ParallelEnv, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
-from freamer_rl_envs.minigrid import MINIGRID_VOCAB, MiniGridEnv, make_minigrid_env
 from freamer_rl.data.text import PAD_ID, UNK_ID, WordTokenizer
+from freamer_rl_envs.minigrid import MINIGRID_VOCAB, MiniGridEnv, make_minigrid_env
 
 EMPTY = "MiniGrid-Empty-5x5-v0"
 # Empty-5x5: the agent starts at (1, 1) facing right, the goal is at (3, 3).
@@ -103,9 +103,17 @@ def test_vocab_covers_missions():
     tok = WordTokenizer(MINIGRID_VOCAB, max_len=64)
     import gymnasium
 
-    for env_id in ("MiniGrid-Fetch-5x5-N2-v0", "MiniGrid-PutNear-6x6-N2-v0", "MiniGrid-LockedRoom-v0",
-                   "MiniGrid-GoToDoor-5x5-v0", "MiniGrid-LavaGapS5-v0", "MiniGrid-MemoryS7-v0",
-                   "MiniGrid-RedBlueDoors-6x6-v0", "BabyAI-GoToLocal-v0", "BabyAI-PutNextLocal-v0"):  # fmt: skip
+    for env_id in (
+        "MiniGrid-Fetch-5x5-N2-v0",
+        "MiniGrid-PutNear-6x6-N2-v0",
+        "MiniGrid-LockedRoom-v0",
+        "MiniGrid-GoToDoor-5x5-v0",
+        "MiniGrid-LavaGapS5-v0",
+        "MiniGrid-MemoryS7-v0",
+        "MiniGrid-RedBlueDoors-6x6-v0",
+        "BabyAI-GoToLocal-v0",
+        "BabyAI-PutNextLocal-v0",
+    ):
         env = gymnasium.make(env_id)
         for seed in range(3):
             mission = env.reset(seed=seed)[0]["mission"]

@@ -8,8 +8,8 @@ import pickle
 from types import SimpleNamespace
 
 import gymnasium
-import numpy as np
 import minigrid  # noqa: F401  (registers the MiniGrid ids)
+import numpy as np
 import pytest
 import torch
 from minigrid.core.constants import COLOR_NAMES, COLOR_TO_IDX, OBJECT_TO_IDX
@@ -19,9 +19,9 @@ from torchrl.envs import SerialEnv
 from torchrl.envs.utils import check_env_specs
 
 import freamer_rl_envs.minigrid_language as lang_mod
-from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 from freamer_rl.machinery.mission import make_mission_parser
 from freamer_rl.machinery.mission.types import ParsedMission, Target
+from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 from freamer_rl_envs.minigrid import MiniGridEnv, make_minigrid_env
 from freamer_rl_envs.minigrid_language import (
     MINIGRID_MISSION_VOCAB,
@@ -291,8 +291,12 @@ def test_vec_env_gives_the_serial_env_lang_reward(fixed_parser, scripted_rollout
 
 def test_option_is_checked_and_picklable():
     assert check_language_option({}) == {
-        "parser": "regex", "llm_path": None, "r_scale": 0.1, "goal_bonus": 1.0, "proximity_bonus": 0.1,
-    }  # fmt: skip
+        "parser": "regex",
+        "llm_path": None,
+        "r_scale": 0.1,
+        "goal_bonus": 1.0,
+        "proximity_bonus": 0.1,
+    }
     with pytest.raises(ValueError, match="unknown keys"):
         check_language_option({"scale": 1.0})
     with pytest.raises(ValueError, match="'regex' or 'llm'"):

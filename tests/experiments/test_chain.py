@@ -21,8 +21,16 @@ from freamer_rl_envs.minigrid import make_minigrid_env
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
 CHAINS = sorted((ROOT / "recipes").glob("*.chain.yaml"))
-SHRINK = ["env.num_envs=2", "ppo.frames_per_batch=32", "ppo.sequence_length=8", "ppo.minibatch_size=16",
-          "ppo.epochs=1", "run.total_frames=64", "logging.progress_bar=false", "model.compile=false"]  # fmt: skip
+SHRINK = [
+    "env.num_envs=2",
+    "ppo.frames_per_batch=32",
+    "ppo.sequence_length=8",
+    "ppo.minibatch_size=16",
+    "ppo.epochs=1",
+    "run.total_frames=64",
+    "logging.progress_bar=false",
+    "model.compile=false",
+]
 
 
 def _train_tiny(run_dir: Path, *overrides: str) -> dict:
@@ -38,8 +46,9 @@ def test_init_from_copies_the_weights_only(tmp_path):
     trained = Trainer(load_config(TINY), tmp_path / "a")  # resumes: holds a's final weights
     source = _weights(trained)
     trained._lock.release()
-    b = Trainer(load_config(TINY, ["env.id=MiniGrid-DoorKey-5x5-v0", f"run.init_from={tmp_path / 'a'}"]),
-                tmp_path / "b")  # fmt: skip
+    b = Trainer(
+        load_config(TINY, ["env.id=MiniGrid-DoorKey-5x5-v0", f"run.init_from={tmp_path / 'a'}"]), tmp_path / "b"
+    )
     for key, value in _weights(b).items():
         assert torch.equal(value, source[key]), key
     assert b.frames == 0 and b.stats.episodes == 0 and not b.optimizer.state  # a fresh run: weights only
@@ -74,8 +83,11 @@ def _write_chain(folder: Path, stages: str) -> Path:
 
 
 def test_chain_trains_stages_in_order_and_resumes(tmp_path):
-    path = _write_chain(tmp_path, "  - {name: empty, recipe: tiny.yaml}\n"
-                                  "  - {name: rooms, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n")
+    path = _write_chain(
+        tmp_path,
+        "  - {name: empty, recipe: tiny.yaml}\n"
+        "  - {name: rooms, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n",
+    )
     rows = run_chain(path)
     root = tmp_path / "runs" / "demo-s3"
     assert [r["stage"] for r in rows] == ["empty", "rooms"] and [r["chain_frames"] for r in rows] == [256, 512]
@@ -120,8 +132,10 @@ def test_chain_cli(tmp_path, capsys):
 
 def test_chain_level_overrides_apply_after_each_stages_own(tmp_path):
     """``freamer-rl chain FILE run.total_frames=...`` shrinks every stage, even one with its own frame cap."""
-    path = _write_chain(tmp_path, "  - {name: a, recipe: tiny.yaml, overrides: [run.total_frames=512]}\n"
-                                  "  - {name: b, recipe: tiny.yaml}\n")
+    path = _write_chain(
+        tmp_path,
+        "  - {name: a, recipe: tiny.yaml, overrides: [run.total_frames=512]}\n  - {name: b, recipe: tiny.yaml}\n",
+    )
     assert cli.main(["--log-level", "WARNING", "chain", str(path), "run.total_frames=128", "seed=4"]) == 0
     summary = json.loads((tmp_path / "runs" / "demo-s4" / "chain_summary.json").read_text())  # seed=4: the file's
     assert summary["seed"] == 4 and [s["frames"] for s in summary["stages"]] == [128, 128]
@@ -129,8 +143,13 @@ def test_chain_level_overrides_apply_after_each_stages_own(tmp_path):
 
 
 def test_split_overrides_follows_the_chain_keys():
-    chain, stages = split_overrides(["seed=1", "output_dir=x", "run.total_frames=2048", "overrides=[a=1]", "ppo.epochs=1"])
-    assert chain == ["seed=1", "output_dir=x", "overrides=[a=1]"] and stages == ["run.total_frames=2048", "ppo.epochs=1"]
+    chain, stages = split_overrides(
+        ["seed=1", "output_dir=x", "run.total_frames=2048", "overrides=[a=1]", "ppo.epochs=1"]
+    )
+    assert chain == ["seed=1", "output_dir=x", "overrides=[a=1]"] and stages == [
+        "run.total_frames=2048",
+        "ppo.epochs=1",
+    ]
 
 
 def test_an_output_dir_that_cannot_be_created_is_one_line_before_training(tmp_path, capsys):
@@ -142,7 +161,9 @@ def test_an_output_dir_that_cannot_be_created_is_one_line_before_training(tmp_pa
     assert not (tmp_path / "runs").exists()  # nothing trained anywhere
 
 
-@pytest.mark.parametrize("env_id, rooms, size", [("MiniGrid-MultiRoom-N3-S4-v0", 3, 4), ("MiniGrid-MultiRoom-N5-S5-v0", 5, 5)])
+@pytest.mark.parametrize(
+    "env_id, rooms, size", [("MiniGrid-MultiRoom-N3-S4-v0", 3, 4), ("MiniGrid-MultiRoom-N5-S5-v0", 5, 5)]
+)
 def test_unregistered_multiroom_sizes_are_built(env_id, rooms, size):
     env = make_minigrid_env(env_id)
     check_env_specs(env, seed=0)

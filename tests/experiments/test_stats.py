@@ -6,12 +6,15 @@ import pytest
 from freamer_rl.experiments.stats import iqm, iqm_ci, probability_of_improvement, stratified_bootstrap_ci
 
 
-@pytest.mark.parametrize("values, expected", [
-    ([1, 2, 3, 4, 100], 3.0),          # n=5: cut one from each end -> mean(2, 3, 4)
-    ([5, 1, 3, 2], 2.5),               # n=4: cut one each -> mean(2, 3)
-    ([7, 7, 7], 7.0),                  # n=3: nothing cut
-    ([1, 2, 3, 4, 5, 6, 7, 8], 4.5),   # n=8: cut two each -> mean(3..6)
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "values, expected",
+    [
+        ([1, 2, 3, 4, 100], 3.0),  # n=5: cut one from each end -> mean(2, 3, 4)
+        ([5, 1, 3, 2], 2.5),  # n=4: cut one each -> mean(2, 3)
+        ([7, 7, 7], 7.0),  # n=3: nothing cut
+        ([1, 2, 3, 4, 5, 6, 7, 8], 4.5),  # n=8: cut two each -> mean(3..6)
+    ],
+)
 def test_iqm_closed_form(values, expected):
     assert iqm(values) == pytest.approx(expected)
 
@@ -28,7 +31,8 @@ def test_bootstrap_interval_of_the_mean_matches_the_normal_approximation():
     se = x.std() / np.sqrt(x.size)
     assert point == pytest.approx(x.mean())
     assert low == pytest.approx(x.mean() - 1.96 * se, abs=0.2 * se) and high == pytest.approx(
-        x.mean() + 1.96 * se, abs=0.2 * se)
+        x.mean() + 1.96 * se, abs=0.2 * se
+    )
 
 
 def test_stratified_resampling_keeps_each_task_size():

@@ -17,8 +17,10 @@ ENV = "MiniGrid-Empty-5x5-v0"
 def _suite(folder: Path, entries: str, *, total_frames: int = 256, name: str = "demo", extra: str = "") -> Path:
     shutil.copy(ROOT / "recipes" / "tiny.yaml", folder / "tiny.yaml")
     path = folder / f"{name}_{total_frames}.yaml"
-    path.write_text(f"name: {name}\nseeds: [0, 1]\ntotal_frames: {total_frames}\noverrides: [ppo.epochs=1]\n{extra}"
-                    f"entries:\n{entries}")  # fmt: skip
+    path.write_text(
+        f"name: {name}\nseeds: [0, 1]\ntotal_frames: {total_frames}\noverrides: [ppo.epochs=1]\n{extra}"
+        f"entries:\n{entries}"
+    )
     return path
 
 
@@ -33,10 +35,13 @@ def test_suite_trains_resumes_skips_and_reports(tmp_path, capsys):
     result = run_suite(first, jobs=2, output=out)  # "interrupted": only entry a, half the budget
     assert sorted(result["trained"]) == [f"a/{ENV}/seed0", f"a/{ENV}/seed1"]
 
-    full = _suite(tmp_path, "  - {label: a, recipe: tiny.yaml}\n"
-                            "  - {label: b, recipe: tiny.yaml, overrides: [optim.lr=1e-3]}\n"
-                            "  - {label: bad, recipe: tiny.yaml, overrides: [optim.lr=fast]}\n"
-                            "  - {label: noenv, recipe: tiny.yaml, envs: [MiniGrid-Nope-v0]}\n")  # fmt: skip
+    full = _suite(
+        tmp_path,
+        "  - {label: a, recipe: tiny.yaml}\n"
+        "  - {label: b, recipe: tiny.yaml, overrides: [optim.lr=1e-3]}\n"
+        "  - {label: bad, recipe: tiny.yaml, overrides: [optim.lr=fast]}\n"
+        "  - {label: noenv, recipe: tiny.yaml, envs: [MiniGrid-Nope-v0]}\n",
+    )
     assert main(["suite", str(full), "--output", str(out), "--dry-run"]) == 0
     listing = capsys.readouterr().out
     assert "partial (128 frames)" in listing and " new" in listing and "failed: " in listing and "optim.lr" in listing
@@ -78,19 +83,32 @@ def test_suite_trains_resumes_skips_and_reports(tmp_path, capsys):
 
 
 def test_plan_folders_and_overrides(tmp_path, monkeypatch):
-    path = _suite(tmp_path, "  - {label: a, recipe: tiny.yaml, overrides: [optim.lr=1e-3]}\n"
-                            "  - {label: b, recipe: tiny.yaml, envs: [MiniGrid-Empty-8x8-v0]}\n",
-                  extra="envs: [MiniGrid-Empty-6x6-v0, ALE/Pong-v5]\n")  # fmt: skip
+    path = _suite(
+        tmp_path,
+        "  - {label: a, recipe: tiny.yaml, overrides: [optim.lr=1e-3]}\n"
+        "  - {label: b, recipe: tiny.yaml, envs: [MiniGrid-Empty-8x8-v0]}\n",
+        extra="envs: [MiniGrid-Empty-6x6-v0, ALE/Pong-v5]\n",
+    )
     monkeypatch.chdir(tmp_path)
     suite, root, runs = plan_suite(path)
     assert root == Path("results/demo")
     assert [(r.label, r.env_dir, r.seed) for r in runs] == [
-        ("a", "MiniGrid-Empty-6x6-v0", 0), ("a", "MiniGrid-Empty-6x6-v0", 1), ("a", "ALE_Pong-v5", 0),
-        ("a", "ALE_Pong-v5", 1), ("b", "MiniGrid-Empty-8x8-v0", 0), ("b", "MiniGrid-Empty-8x8-v0", 1),
-    ]  # fmt: skip
+        ("a", "MiniGrid-Empty-6x6-v0", 0),
+        ("a", "MiniGrid-Empty-6x6-v0", 1),
+        ("a", "ALE_Pong-v5", 0),
+        ("a", "ALE_Pong-v5", 1),
+        ("b", "MiniGrid-Empty-8x8-v0", 0),
+        ("b", "MiniGrid-Empty-8x8-v0", 1),
+    ]
     assert runs[1].run_dir == Path("results/demo/runs/a/MiniGrid-Empty-6x6-v0/seed1")
-    assert runs[1].overrides == ["env.id=MiniGrid-Empty-6x6-v0", "run.total_frames=256", "ppo.epochs=1", "optim.lr=1e-3",
-                                 "run.seed=1", "logging.progress_bar=false"]  # fmt: skip
+    assert runs[1].overrides == [
+        "env.id=MiniGrid-Empty-6x6-v0",
+        "run.total_frames=256",
+        "ppo.epochs=1",
+        "optim.lr=1e-3",
+        "run.seed=1",
+        "logging.progress_bar=false",
+    ]
     assert runs[1].target_frames == 256 and runs[1].error is None
     assert env_folder("ALE/Pong-v5") == "ALE_Pong-v5"
 
@@ -99,10 +117,15 @@ def test_plan_folders_and_overrides(tmp_path, monkeypatch):
     ("text", "field"),
     [
         ("name: demo\nentries: [{label: a, recipe: tiny.yaml}]\nseed: [0]\n", "unknown key 'seed'"),
-        ("name: demo\nentries: [{label: a, recipe: tiny.yaml, overide: [x=1]}]\n", r"unknown key 'entries\[0\].overide'"),
+        (
+            "name: demo\nentries: [{label: a, recipe: tiny.yaml, overide: [x=1]}]\n",
+            r"unknown key 'entries\[0\].overide'",
+        ),
         ("name: demo\nentries: [{label: ../a, recipe: tiny.yaml}]\n", r"entries\[0\].label"),
-        ("name: demo\nentries: [{label: a, recipe: tiny.yaml}, {label: a, recipe: tiny.yaml}]\n",
-         r"entries\[1\].label: 'a' is used twice"),
+        (
+            "name: demo\nentries: [{label: a, recipe: tiny.yaml}, {label: a, recipe: tiny.yaml}]\n",
+            r"entries\[1\].label: 'a' is used twice",
+        ),
         ("name: demo\nentries: [{label: a, recipe: nope.yaml}]\n", r"entries\[0\].recipe: no such recipe file"),
         ("name: demo\nenvs: [MiniGrid-Empty-5x5-v0, ..]\nentries: [{label: a, recipe: tiny.yaml}]\n", r"envs\[1\]"),
         ("name: demo\nentries: [{label: a, recipe: tiny.yaml, envs: [a/b, a_b]}]\n", r"entries\[0\].envs\[1\]"),

@@ -24,8 +24,10 @@ ENV = "MiniGrid-Empty-5x5-v0"
 def _suite(folder: Path, total_frames: int) -> Path:
     shutil.copy(ROOT / "recipes" / "tiny.yaml", folder / "tiny.yaml")
     path = folder / "suite.yaml"
-    path.write_text(f"name: safety\nseeds: [0]\ntotal_frames: {total_frames}\noverrides: [ppo.epochs=1]\n"
-                    "entries:\n  - {label: a, recipe: tiny.yaml}\n")  # fmt: skip
+    path.write_text(
+        f"name: safety\nseeds: [0]\ntotal_frames: {total_frames}\noverrides: [ppo.epochs=1]\n"
+        "entries:\n  - {label: a, recipe: tiny.yaml}\n"
+    )
     return path
 
 
@@ -77,9 +79,21 @@ def _alive(pid: int) -> bool:
 def test_kill_9_of_the_suite_ends_its_workers_and_frees_the_run_locks(tmp_path):
     out = tmp_path / "out"
     run_dir = out / "runs" / "a" / ENV / "seed0"
-    suite = subprocess.Popen([sys.executable, "-m", "freamer_rl.cli", "--log-level", "WARNING", "suite",
-                              str(_suite(tmp_path, 10_000_000)), "--output", str(out)],
-                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # fmt: skip
+    suite = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "freamer_rl.cli",
+            "--log-level",
+            "WARNING",
+            "suite",
+            str(_suite(tmp_path, 10_000_000)),
+            "--output",
+            str(out),
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     workers: list[int] = []
     try:
         deadline = time.monotonic() + 180

@@ -87,15 +87,34 @@ class ToySensorEnv(EnvBase):
         t = torch.zeros(*self.batch_size, 1)
         imu, hr = self._obs(t)
         done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
-        return TensorDict({"imu": imu, "hr_features": hr, "t": t, "done": done, "terminated": done.clone(),
-                           "truncated": done.clone()}, self.batch_size)
+        return TensorDict(
+            {
+                "imu": imu,
+                "hr_features": hr,
+                "t": t,
+                "done": done,
+                "terminated": done.clone(),
+                "truncated": done.clone(),
+            },
+            self.batch_size,
+        )
 
     def _step(self, td):
         t = td["t"] + 1
         imu, hr = self._obs(t, td["action"])
         done = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
-        return TensorDict({"imu": imu, "hr_features": hr, "t": t, "reward": imu[..., :1], "done": done,
-                           "terminated": done.clone(), "truncated": done.clone()}, self.batch_size)
+        return TensorDict(
+            {
+                "imu": imu,
+                "hr_features": hr,
+                "t": t,
+                "reward": imu[..., :1],
+                "done": done,
+                "terminated": done.clone(),
+                "truncated": done.clone(),
+            },
+            self.batch_size,
+        )
 
     def _set_seed(self, seed):
         return seed
@@ -133,8 +152,16 @@ def test_plot_anomaly_timeline_png(tmp_path):
     kl = stationary(T)
     kl[150] += 2.0
     flags, thr = detect_anomalies(kl, warmup=20)
-    out = plot_anomaly_timeline(hr, actions, kl, flags, tmp_path / "fig" / "anomaly.png", threshold=thr,
-                                time_hours=t * 48 / T, title="48 h scenario")
+    out = plot_anomaly_timeline(
+        hr,
+        actions,
+        kl,
+        flags,
+        tmp_path / "fig" / "anomaly.png",
+        threshold=thr,
+        time_hours=t * 48 / T,
+        title="48 h scenario",
+    )
     with open(out, "rb") as f:
         assert f.read(8) == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="actions"):
@@ -145,20 +172,34 @@ def test_plot_anomaly_timeline_png(tmp_path):
 def test_transform_works_with_every_health_encoder(kind):
     """The online filter drives each health encoder through its step API (the foundation encoder's DNC memory is
     carried in the tensordict) and its KL equals the offline KL of the recorded episode (sequence mode)."""
+    from freamer_rl.health.encoders import make_health_encoder
     from freamer_rl_envs.health import make_health_env
 
-    from freamer_rl.health.encoders import make_health_encoder
-
     torch.manual_seed(0)
-    small = {"mlp": {"hidden": 16}, "cnn": {"channels": 4, "hidden": 16},
-             "slotattn": {"dim": 8, "heads": 2, "hr_tokens": 2, "hidden": 16},
-             "foundation": {"dim": 8, "heads": 2, "hr_tokens": 2, "hidden": 16, "fm_hidden": 16, "fm_steps": 2,
-                            "fno_modes": 4, "memory_slots": 4, "memory_width": 6}}  # fmt: skip
+    small = {
+        "mlp": {"hidden": 16},
+        "cnn": {"channels": 4, "hidden": 16},
+        "slotattn": {"dim": 8, "heads": 2, "hr_tokens": 2, "hidden": 16},
+        "foundation": {
+            "dim": 8,
+            "heads": 2,
+            "hr_tokens": 2,
+            "hidden": 16,
+            "fm_hidden": 16,
+            "fm_steps": 2,
+            "fno_modes": 4,
+            "memory_slots": 4,
+            "memory_width": 6,
+        },
+    }
     enc = make_health_encoder(kind, 12, **small[kind])
-    wm = WorldModel({"imu": 36, "hr_features": 16}, 5, encoder=enc, embed_dim=12, deter_dim=16, stoch_dim=4,
-                    hidden=16).eval()  # fmt: skip
-    env = TransformedEnv(make_health_env(batch_size=2, episode_length=40, seed=0, rate_hz=0.2),
-                         KLAnomalyTransform(wm, detector=KLAnomalyDetector(warmup=3)))  # fmt: skip
+    wm = WorldModel(
+        {"imu": 36, "hr_features": 16}, 5, encoder=enc, embed_dim=12, deter_dim=16, stoch_dim=4, hidden=16
+    ).eval()
+    env = TransformedEnv(
+        make_health_env(batch_size=2, episode_length=40, seed=0, rate_hz=0.2),
+        KLAnomalyTransform(wm, detector=KLAnomalyDetector(warmup=3)),
+    )
     check_env_specs(env)
     traj = env.rollout(12)
     assert traj["next", "kl"].shape == (2, 12, 1) and torch.isfinite(traj["next", "kl"]).all()

@@ -27,8 +27,19 @@ def tiny(kind: str):
         return make_health_encoder(kind, E, channels=4, hidden=16)
     if kind == "slotattn":
         return make_health_encoder(kind, E, dim=8, heads=2, hr_tokens=2, hidden=16)
-    return make_health_encoder(kind, E, dim=8, heads=2, hr_tokens=2, hidden=16, fm_hidden=16, fm_steps=2,
-                               fno_modes=4, memory_slots=4, memory_width=6)
+    return make_health_encoder(
+        kind,
+        E,
+        dim=8,
+        heads=2,
+        hr_tokens=2,
+        hidden=16,
+        fm_hidden=16,
+        fm_steps=2,
+        fno_modes=4,
+        memory_slots=4,
+        memory_width=6,
+    )
 
 
 def obs(shape):
@@ -135,12 +146,19 @@ def test_foundation_td_step_mode_and_errors():
     torch.testing.assert_close(td["obs_embed"], ref)
     torch.testing.assert_close(td["next", "dnc", "memory"], st["memory"])
     # explicit recurrent mode: [B, T] starting from the stored memory at t = 0
-    tdseq = TensorDict({**obs((3, 4)), "is_init": torch.zeros(3, 4, 1, dtype=torch.bool),
-                        ("dnc", "memory"): mem.unsqueeze(1).expand(3, 4, 4, 6).clone()}, [3, 4])
+    tdseq = TensorDict(
+        {
+            **obs((3, 4)),
+            "is_init": torch.zeros(3, 4, 1, dtype=torch.bool),
+            ("dnc", "memory"): mem.unsqueeze(1).expand(3, 4, 4, 6).clone(),
+        },
+        [3, 4],
+    )
     with torch.no_grad(), set_recurrent_mode(True):
         enc(tdseq)
-        ref_seq, _ = enc.encode_sequence({k: tdseq[k] for k in ("imu", "hr_features")},
-                                         torch.zeros(3, 4, dtype=torch.bool), mem)
+        ref_seq, _ = enc.encode_sequence(
+            {k: tdseq[k] for k in ("imu", "hr_features")}, torch.zeros(3, 4, dtype=torch.bool), mem
+        )
     torch.testing.assert_close(tdseq["obs_embed"], ref_seq)
     with pytest.raises(KeyError, match="is_init"):
         enc(TensorDict(obs((3,)), [3]))
@@ -152,14 +170,18 @@ def test_foundation_td_step_mode_and_errors():
 def test_plugs_into_world_model_loss(kind):
     torch.manual_seed(0)
     enc = tiny(kind)
-    wm = WorldModel({"imu": 36, "hr_features": 16}, 5, encoder=enc, embed_dim=E, deter_dim=16, stoch_dim=4,
-                    hidden=16)
+    wm = WorldModel({"imu": 36, "hr_features": 16}, 5, encoder=enc, embed_dim=E, deter_dim=16, stoch_dim=4, hidden=16)
     B, T = 3, 5
     batch = TensorDict(
         {
-            **obs((B, T)), "action": torch.randint(0, 5, (B, T)),
-            "next": {**obs((B, T)), "reward": torch.randn(B, T, 1), "done": torch.zeros(B, T, 1, dtype=torch.bool),
-                     "terminated": torch.zeros(B, T, 1, dtype=torch.bool)},
+            **obs((B, T)),
+            "action": torch.randint(0, 5, (B, T)),
+            "next": {
+                **obs((B, T)),
+                "reward": torch.randn(B, T, 1),
+                "done": torch.zeros(B, T, 1, dtype=torch.bool),
+                "terminated": torch.zeros(B, T, 1, dtype=torch.bool),
+            },
         },
         [B, T],
     )
@@ -183,8 +205,12 @@ def test_plugs_into_world_model_loss(kind):
 def test_foundation_loads_checkpoints_of_the_former_hand_wired_encoder():
     """State dicts written before the shared trunk (names stage1.*, refiners.<m>.*, fuser.*, dnc.*) still load."""
     enc = tiny("foundation")
-    legacy = {"stage1.site_embed": torch.full((3, 8), 0.5), "refiners.heart_rate.alpha": torch.tensor(2.0),
-              "fuser.residual_scale": torch.tensor(0.7), "dnc.out.bias": torch.full((E,), 0.25)}
+    legacy = {
+        "stage1.site_embed": torch.full((3, 8), 0.5),
+        "refiners.heart_rate.alpha": torch.tensor(2.0),
+        "fuser.residual_scale": torch.tensor(0.7),
+        "dnc.out.bias": torch.full((E,), 0.25),
+    }
     result = enc.load_state_dict(legacy, strict=False)
     assert not result.unexpected_keys
     assert torch.equal(enc.stage1.site_embed, legacy["stage1.site_embed"])

@@ -10,27 +10,51 @@ import torch
 from tensordict import TensorDict
 from torchrl.envs import ExplorationType, set_exploration_type
 
-from freamer_rl.run import env_registry
 from freamer_rl.errors import CheckpointError, ConfigError
-from freamer_rl.health.config import HealthConfig, health_config_from_dict, load_health_config
-from freamer_rl.health.anomaly_report import anomaly_report, record_episode
 from freamer_rl.health.agent import build_agent, load_agent, make_health_env
-from freamer_rl.world_model.metrics import imagination_horizon
+from freamer_rl.health.anomaly_report import anomaly_report, record_episode
+from freamer_rl.health.config import HealthConfig, health_config_from_dict, load_health_config
+from freamer_rl.run import env_registry
 from freamer_rl.trainers.health import STRUCTURAL
 from freamer_rl.trainers.health import train as train_health
+from freamer_rl.world_model.metrics import imagination_horizon
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPES = {k: ROOT / "recipes" / "health" / f"health_{k}.yaml" for k in ("mlp", "cnn", "slotattn", "foundation")}
 
 TINY = [
-    "env.num_envs=4", "env.episode_length=48", "collect.iterations=2", "collect.prefill_frames=128",
-    "collect.frames_per_iter=64", "world_model.seq_len=12", "world_model.batch_size=4", "world_model.train_steps=2",
-    "world_model.prefill_train_steps=2", "world_model.deter_dim=16", "world_model.stoch_dim=4",
-    "world_model.hidden=16", "encoder.embed_dim=12", "encoder.dim=8", "encoder.heads=2", "encoder.hr_tokens=2",
-    "encoder.hidden=16", "encoder.fm_hidden=16", "encoder.fm_steps=2", "encoder.fno_modes=4",
-    "encoder.memory_slots=4", "encoder.memory_width=6", "imagination.num_seeds=16", "imagination.updates=1",
-    "imagination.epochs=1", "imagination.num_minibatches=2", "imagination.policy_hidden=16", "eval.num_envs=2",
-    "eval.horizon_context=4", "eval.horizon_max=8", "eval.mse_windows=4", "eval.horizon_windows=4",
+    "env.num_envs=4",
+    "env.episode_length=48",
+    "collect.iterations=2",
+    "collect.prefill_frames=128",
+    "collect.frames_per_iter=64",
+    "world_model.seq_len=12",
+    "world_model.batch_size=4",
+    "world_model.train_steps=2",
+    "world_model.prefill_train_steps=2",
+    "world_model.deter_dim=16",
+    "world_model.stoch_dim=4",
+    "world_model.hidden=16",
+    "encoder.embed_dim=12",
+    "encoder.dim=8",
+    "encoder.heads=2",
+    "encoder.hr_tokens=2",
+    "encoder.hidden=16",
+    "encoder.fm_hidden=16",
+    "encoder.fm_steps=2",
+    "encoder.fno_modes=4",
+    "encoder.memory_slots=4",
+    "encoder.memory_width=6",
+    "imagination.num_seeds=16",
+    "imagination.updates=1",
+    "imagination.epochs=1",
+    "imagination.num_minibatches=2",
+    "imagination.policy_hidden=16",
+    "eval.num_envs=2",
+    "eval.horizon_context=4",
+    "eval.horizon_max=8",
+    "eval.mse_windows=4",
+    "eval.horizon_windows=4",
     "logging.progress_bar=false",
 ]
 
@@ -79,8 +103,9 @@ def test_bad_keys_and_types_name_the_field():
         load_health_config(None, ["logging.backend=mlflow"])
 
 
-@pytest.mark.parametrize(("old", "new"), [("run.logger=csv", "logging.backend"),
-                                          ("run.progress_bar=false", "logging.progress_bar")])  # fmt: skip
+@pytest.mark.parametrize(
+    ("old", "new"), [("run.logger=csv", "logging.backend"), ("run.progress_bar=false", "logging.progress_bar")]
+)
 def test_health_uses_the_shared_logging_keys(old, new):
     """One key per setting across trainers: the health-only keys of earlier releases are refused naming the new one."""
     with pytest.raises(ConfigError, match=rf"{old.split('=')[0]}: this key was renamed; use {new}"):
@@ -174,14 +199,19 @@ def test_imagination_horizon_definition():
     reward = torch.zeros(N, C + H, 1)
     reward[0, C + 2] = 1.0  # error at imagined step 3 -> horizon 2
     reward[1, C + 0] = -0.8  # error at the first imagined step -> horizon 0
-    reward[2, : C] = 5.0  # errors only inside the context -> never fails -> H
+    reward[2, :C] = 5.0  # errors only inside the context -> never fails -> H
     windows = TensorDict(
         {
-            "imu": torch.randn(N, C + H, 36), "hr_features": torch.rand(N, C + H, 16),
+            "imu": torch.randn(N, C + H, 36),
+            "hr_features": torch.rand(N, C + H, 16),
             "action": torch.randint(0, 5, (N, C + H)),
-            "next": {"imu": torch.randn(N, C + H, 36), "hr_features": torch.rand(N, C + H, 16), "reward": reward,
-                     "done": torch.zeros(N, C + H, 1, dtype=torch.bool),
-                     "terminated": torch.zeros(N, C + H, 1, dtype=torch.bool)},
+            "next": {
+                "imu": torch.randn(N, C + H, 36),
+                "hr_features": torch.rand(N, C + H, 16),
+                "reward": reward,
+                "done": torch.zeros(N, C + H, 1, dtype=torch.bool),
+                "terminated": torch.zeros(N, C + H, 1, dtype=torch.bool),
+            },
         },
         [N, C + H],
     )
@@ -277,4 +307,3 @@ def test_anomaly_report_writes_png(tiny_run, tmp_path):
     assert (tmp_path / "anomaly_summary.json").is_file() and (tmp_path / "anomaly_episode.npz").is_file()
     assert 0 <= out["anomalies"] <= 100
     assert math.isfinite(out["kl_mean"])
-

@@ -6,7 +6,6 @@ import pytest
 import torch
 from tensordict import TensorDict
 
-from freamer_rl.run import env_registry
 from freamer_rl.health.config import load_health_config
 from freamer_rl.health.evaluation import rollout_metrics
 from freamer_rl.health.reference import (
@@ -18,6 +17,7 @@ from freamer_rl.health.reference import (
     evaluate_reference,
     make_reference_policy,
 )
+from freamer_rl.run import env_registry
 
 ROOT = Path(__file__).resolve().parents[2]
 BATCH_SHAPES = [(), (2,), (3, 2)]
@@ -33,9 +33,16 @@ def health_adapter(monkeypatch):
 
 
 def tiny_cfg():
-    return load_health_config(ROOT / "recipes" / "health" / "health_mlp.yaml",
-                              ["env.episode_length=40", "eval.num_envs=3", "eval.horizon_context=4",
-                               "eval.horizon_max=8", "world_model.seq_len=8"])  # fmt: skip
+    return load_health_config(
+        ROOT / "recipes" / "health" / "health_mlp.yaml",
+        [
+            "env.episode_length=40",
+            "eval.num_envs=3",
+            "eval.horizon_context=4",
+            "eval.horizon_max=8",
+            "world_model.seq_len=8",
+        ],
+    )
 
 
 def test_action_names_match_env():

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from freamer_rl.model.factory import build_filter_mix_memory
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
+from freamer_rl.model.factory import build_filter_mix_memory
 
 D = 8
 CHOICES = (1, 2, 3, 5, 7, 10)
@@ -14,8 +14,16 @@ CHOICES = (1, 2, 3, 5, 7, 10)
 
 def _adaptive(deduplicate: bool = True, **kwargs) -> FlowMatchingRefiner:
     torch.manual_seed(0)
-    r = FlowMatchingRefiner(D, hidden=16, steps=4, gate_init=0.0, last_layer_scale=1.0, deduplicate=deduplicate,
-                            adaptive_steps=CHOICES, **kwargs)  # fmt: skip
+    r = FlowMatchingRefiner(
+        D,
+        hidden=16,
+        steps=4,
+        gate_init=0.0,
+        last_layer_scale=1.0,
+        deduplicate=deduplicate,
+        adaptive_steps=CHOICES,
+        **kwargs,
+    )
     return r.eval()
 
 
@@ -153,10 +161,17 @@ def test_adaptive_state_dict_and_invalid_arguments():
 
 
 def test_trunk_builder_passes_the_adaptive_settings():
-    kwargs = dict(flow_hidden=8, flow_steps=2, gate_init={"state": -3.0, "reward": -1.0}, fno_modes=4,
-                  fno_residual_scale=0.1, dnc=False)  # fmt: skip
-    _, refiners, _, _ = build_filter_mix_memory(["state", "reward"], 8, flow_adaptive_steps=(1, 3), flow_tau=0.5,
-                                                **kwargs)  # fmt: skip
+    kwargs = dict(
+        flow_hidden=8,
+        flow_steps=2,
+        gate_init={"state": -3.0, "reward": -1.0},
+        fno_modes=4,
+        fno_residual_scale=0.1,
+        dnc=False,
+    )
+    _, refiners, _, _ = build_filter_mix_memory(
+        ["state", "reward"], 8, flow_adaptive_steps=(1, 3), flow_tau=0.5, **kwargs
+    )
     assert all(r.adaptive_steps == (1, 3) and r.tau == 0.5 for r in refiners.values())
     _, refiners, _, _ = build_filter_mix_memory(["state", "reward"], 8, **kwargs)
     assert all(r.adaptive_steps is None for r in refiners.values())

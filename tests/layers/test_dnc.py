@@ -236,8 +236,15 @@ def test_recurrent_mode_refuses_a_flat_batch():
         module(td)
     msg = str(err.value)
     assert "\n" not in msg
-    for part in ("[B, T]", "(6,)", "shuffled", "split_sequences", "SliceSampler", "Sequences for stateful layers",
-                 "unsqueeze(0)"):
+    for part in (
+        "[B, T]",
+        "(6,)",
+        "shuffled",
+        "split_sequences",
+        "SliceSampler",
+        "Sequences for stateful layers",
+        "unsqueeze(0)",
+    ):
         assert part in msg, part
     with set_recurrent_mode(True):  # the advertised fix works
         out = module(td.unsqueeze(0))

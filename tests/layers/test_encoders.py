@@ -400,7 +400,6 @@ def test_clip_checkpoint_that_does_not_fit(tmp_path):
         ClipBackbone("ViT-B-32", pretrained=None, checkpoint_path=str(garbage))
 
 
-
 def test_language_deduplication_matches_plain_encoding():
     """Encoding distinct rows once and gathering gives the same slots and gradients as encoding every row."""
     torch.manual_seed(0)

@@ -36,15 +36,24 @@ class ScriptEnv(EnvBase):
         mask = torch.ones(*self.batch_size, 1, dtype=torch.bool) if mask is None else mask.reshape(self._obs.shape)
         self._obs = torch.where(mask, torch.zeros_like(self._obs), self._obs)
         false = torch.zeros(*self.batch_size, 1, dtype=torch.bool)
-        return TensorDict({"obs": self._obs.clone(), "done": false, "terminated": false.clone(),
-                           "truncated": false.clone()}, batch_size=self.batch_size)  # fmt: skip
+        return TensorDict(
+            {"obs": self._obs.clone(), "done": false, "terminated": false.clone(), "truncated": false.clone()},
+            batch_size=self.batch_size,
+        )
 
     def _step(self, tensordict):
         self._obs = tensordict["action"].reshape(self._obs.shape).clone()
         end = self._obs == 9
-        return TensorDict({"obs": self._obs.clone(), "reward": torch.zeros(self._obs.shape), "done": end,
-                           "terminated": end.clone(), "truncated": torch.zeros_like(end)},
-                          batch_size=self.batch_size)  # fmt: skip
+        return TensorDict(
+            {
+                "obs": self._obs.clone(),
+                "reward": torch.zeros(self._obs.shape),
+                "done": end,
+                "terminated": end.clone(),
+                "truncated": torch.zeros_like(end),
+            },
+            batch_size=self.batch_size,
+        )
 
     def _set_seed(self, seed):
         pass
@@ -270,8 +279,18 @@ def _mix_batch():
     nov = torch.tensor([[[0.5], [0.0], [0.2]]])
     cur = torch.tensor([[1.0, 2.0, 0.0]])  # [*B, T] is accepted too
     done = torch.tensor([[[False], [False], [True]]])
-    return TensorDict({"next": {"reward": reward, "novelty_bonus": nov, "curiosity_reward": cur, "done": done,
-                                "terminated": done.clone()}}, batch_size=[1, 3])  # fmt: skip
+    return TensorDict(
+        {
+            "next": {
+                "reward": reward,
+                "novelty_bonus": nov,
+                "curiosity_reward": cur,
+                "done": done,
+                "terminated": done.clone(),
+            }
+        },
+        batch_size=[1, 3],
+    )
 
 
 def test_reward_mixer_adaptive_and_time_penalty():
@@ -285,8 +304,9 @@ def test_reward_mixer_adaptive_and_time_penalty():
     assert td["next", "shaped_reward"].reshape(-1).tolist() == pytest.approx(want)
     assert td["next", "reward"].reshape(-1).tolist() == pytest.approx([0.0, 0.0, 0.9])  # env reward untouched
     diag = mixer.diagnostics()
-    assert diag == pytest.approx({"bonus_novelty": 0.7 / 3, "bonus_curiosity": 1.0, "shaping_decay": 0.5,
-                                  "time_penalty": 0.07})  # fmt: skip
+    assert diag == pytest.approx(
+        {"bonus_novelty": 0.7 / 3, "bonus_curiosity": 1.0, "shaping_decay": 0.5, "time_penalty": 0.07}
+    )
     mixer(td, success_rate=0.9)  # decay floors at 0; penalty 0.05 * 1.9
     assert td["next", "shaped_reward"].reshape(-1).tolist() == pytest.approx([-0.095, -0.095, 0.9 - 0.095])
     mixer(td, success_rate=float("nan"))  # no episode yet: S = 0

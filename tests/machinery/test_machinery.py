@@ -20,8 +20,14 @@ from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
-ALL_SHAPING = ["shaping.language.weight=0.2", "shaping.novelty.weight=0.1", "shaping.curiosity=0.2",
-               "shaping.vision_language=0.1", "shaping.time_penalty=0.02", "shaping.adaptive=true"]  # fmt: skip
+ALL_SHAPING = [
+    "shaping.language.weight=0.2",
+    "shaping.novelty.weight=0.1",
+    "shaping.curiosity=0.2",
+    "shaping.vision_language=0.1",
+    "shaping.time_penalty=0.02",
+    "shaping.adaptive=true",
+]
 
 
 def _rows(run_dir: Path) -> list[dict]:
@@ -54,8 +60,10 @@ def test_shaped_reward_is_the_mix_of_every_term(shaped):
     for key in ("lang_reward", "novelty_bonus", "vl_reward", "curiosity_reward"):
         assert data["next", key].shape == env_reward.shape, key
     decay = 1 - 1.25 * 0.25
-    bonus = sum(w * data["next", k] for k, w in [("lang_reward", 0.2), ("novelty_bonus", 0.1), ("vl_reward", 0.1),
-                                                  ("curiosity_reward", 0.2)])  # fmt: skip
+    bonus = sum(
+        w * data["next", k]
+        for k, w in [("lang_reward", 0.2), ("novelty_bonus", 0.1), ("vl_reward", 0.1), ("curiosity_reward", 0.2)]
+    )
     expected = env_reward + decay * bonus - 0.02 * (1 + 0.25)
     torch.testing.assert_close(data["next", "shaped_reward"], expected)
 
@@ -64,8 +72,9 @@ def test_vision_language_reward_is_potential_based(shaped):
     """R_VL = gamma * cos(next) - cos(now), with 0 potential after an episode's end."""
     cfg, _, _, data = shaped
     sim = torch.nn.functional.cosine_similarity(data["refined", "state"], data["refined", "language"], dim=-1)
-    torch.testing.assert_close(data["next", "vl_reward"],
-                               potential_difference(sim.unsqueeze(-1), data["next", "done"], cfg.ppo.gamma))
+    torch.testing.assert_close(
+        data["next", "vl_reward"], potential_difference(sim.unsqueeze(-1), data["next", "done"], cfg.ppo.gamma)
+    )
 
 
 @pytest.fixture(scope="module")
@@ -78,8 +87,17 @@ def shaped_run(tmp_path_factory):
 
 def test_shaping_logs_every_term(shaped_run):
     row = _rows(shaped_run)[-1]
-    for col in ("bonus_lang", "bonus_novelty", "bonus_vl", "bonus_curiosity", "shaping_decay", "time_penalty",
-                "loss_curiosity", "parser_hit_rate", "parser_fallbacks"):
+    for col in (
+        "bonus_lang",
+        "bonus_novelty",
+        "bonus_vl",
+        "bonus_curiosity",
+        "shaping_decay",
+        "time_penalty",
+        "loss_curiosity",
+        "parser_hit_rate",
+        "parser_fallbacks",
+    ):
         assert col in row and row[col] != "nan", col
 
 

@@ -41,18 +41,23 @@ def _flags(rows):
 
 def hand_batch():
     """Four envs x 6 steps; the expected success mask is in the comments (1 = step of a successful episode)."""
-    is_init = [[0, 0, 0, 1, 0, 0],   # episode from an earlier batch ends in success at t=2 -> 1 1 1 0 0 0
-               [1, 0, 1, 0, 1, 0],   # truncated (failure) at 1, successes at 3 and 5 -> 0 0 1 1 1 1
-               [1, 0, 0, 1, 0, 0],   # terminated without reward (failure) at 2, then running -> 0 0 0 0 0 0
-               [0, 1, 0, 0, 0, 0]]   # a one-step tail succeeds at t=0, then running -> 1 0 0 0 0 0
+    is_init = [
+        [0, 0, 0, 1, 0, 0],  # episode from an earlier batch ends in success at t=2 -> 1 1 1 0 0 0
+        [1, 0, 1, 0, 1, 0],  # truncated (failure) at 1, successes at 3 and 5 -> 0 0 1 1 1 1
+        [1, 0, 0, 1, 0, 0],  # terminated without reward (failure) at 2, then running -> 0 0 0 0 0 0
+        [0, 1, 0, 0, 0, 0],
+    ]  # a one-step tail succeeds at t=0, then running -> 1 0 0 0 0 0
     done = [[0, 0, 1, 0, 0, 0], [0, 1, 0, 1, 0, 1], [0, 0, 1, 0, 0, 0], [1, 0, 0, 0, 0, 0]]
     term = [[0, 0, 1, 0, 0, 0], [0, 0, 0, 1, 0, 1], [0, 0, 1, 0, 0, 0], [1, 0, 0, 0, 0, 0]]
-    reward = [[0, 0, .8, 0, 0, 0], [0, 0, 0, .5, 0, .9], [0, 0, 0, 0, 0, 0], [.7, 0, 0, 0, 0, 0]]
+    reward = [[0, 0, 0.8, 0, 0, 0], [0, 0, 0, 0.5, 0, 0.9], [0, 0, 0, 0, 0, 0], [0.7, 0, 0, 0, 0, 0]]
     expected = torch.tensor([[1, 1, 1, 0, 0, 0], [0, 0, 1, 1, 1, 1], [0, 0, 0, 0, 0, 0], [1, 0, 0, 0, 0, 0]]).bool()
-    td = TensorDict({
-        "is_init": _flags(is_init),
-        "next": {"done": _flags(done), "terminated": _flags(term), "reward": torch.tensor(reward).unsqueeze(-1)},
-    }, batch_size=[4, 6])  # fmt: skip
+    td = TensorDict(
+        {
+            "is_init": _flags(is_init),
+            "next": {"done": _flags(done), "terminated": _flags(term), "reward": torch.tensor(reward).unsqueeze(-1)},
+        },
+        batch_size=[4, 6],
+    )
     return td, expected
 
 
@@ -100,11 +105,14 @@ def test_success_mask_errors_name_the_problem():
 # ---------------------------------------------------------------------------------------------------------------
 def seqs_with_ids(ids, L=4):
     ids = torch.as_tensor(ids)
-    return TensorDict({
-        "id": ids[:, None].expand(-1, L).clone(),
-        "obs": {"x": ids[:, None, None].float().expand(-1, L, 2).clone()},
-        "empty": {},  # the trunk's output groups stay as empty sub-tensordicts after exclude()
-    }, batch_size=[len(ids), L])  # fmt: skip
+    return TensorDict(
+        {
+            "id": ids[:, None].expand(-1, L).clone(),
+            "obs": {"x": ids[:, None, None].float().expand(-1, L, 2).clone()},
+            "empty": {},  # the trunk's output groups stay as empty sub-tensordicts after exclude()
+        },
+        batch_size=[len(ids), L],
+    )
 
 
 def _ids(buf):
@@ -203,29 +211,32 @@ def replay_batch(reward, done, term, value, log_mu, log_pi=None, mask=None):
     reward, value, log_mu = (torch.tensor(x, dtype=torch.float32) for x in (reward, value, log_mu))
     log_pi = log_mu.clone() if log_pi is None else torch.tensor(log_pi, dtype=torch.float32)
     S, L = reward.shape
-    td = TensorDict({
-        "action": torch.zeros(S, L, dtype=torch.long),
-        "action_log_prob": log_mu,
-        REPLAY_MASK_KEY: torch.ones(S, L, dtype=torch.bool) if mask is None else torch.tensor(mask).bool(),
-        "next": {"reward": reward.unsqueeze(-1), "done": _flags(done), "terminated": _flags(term)},
-    }, batch_size=[S, L])  # fmt: skip
+    td = TensorDict(
+        {
+            "action": torch.zeros(S, L, dtype=torch.long),
+            "action_log_prob": log_mu,
+            REPLAY_MASK_KEY: torch.ones(S, L, dtype=torch.bool) if mask is None else torch.tensor(mask).bool(),
+            "next": {"reward": reward.unsqueeze(-1), "done": _flags(done), "terminated": _flags(term)},
+        },
+        batch_size=[S, L],
+    )
     return td, (lambda t: log_pi), (lambda t: value.unsqueeze(-1))
 
 
 def test_vtrace_on_policy_equals_td1_returns_by_hand():
     """pi == mu, no truncation: v_t is the lambda=1 return, bootstrapped at the bootstrap points by hand."""
-    r = [[0, 0, 0, 1, 0, 0], [0, 0, 1, 0, 0, 0], [0, .5, 0, 0, 0, 1]]
+    r = [[0, 0, 0, 1, 0, 0], [0, 0, 1, 0, 0, 0], [0, 0.5, 0, 0, 0, 1]]
     done = [[0, 0, 0, 0, 0, 0], [0, 0, 1, 0, 0, 0], [0, 0, 1, 0, 0, 1]]
     term = [[0, 0, 0, 0, 0, 0], [0, 0, 1, 0, 0, 0], [0, 0, 0, 0, 0, 1]]  # row 2: truncated at t=2
-    V = [[.1, .2, .3, .4, .5, .6], [.6, .5, .4, .3, .2, .1], [.2, .2, .7, .1, .3, .9]]
+    V = [[0.1, 0.2, 0.3, 0.4, 0.5, 0.6], [0.6, 0.5, 0.4, 0.3, 0.2, 0.1], [0.2, 0.2, 0.7, 0.1, 0.3, 0.9]]
     g = GAMMA
     expected = [
         # no end in the sequence: bootstrap from V(s_5); step 5 is a bootstrap point (target = its value)
-        [g**3 + g**5 * .6, g**2 + g**4 * .6, g + g**3 * .6, 1 + g**2 * .6, g * .6, .6],
+        [g**3 + g**5 * 0.6, g**2 + g**4 * 0.6, g + g**3 * 0.6, 1 + g**2 * 0.6, g * 0.6, 0.6],
         # success at t=2 (terminal return), new episode bootstrapped from V(s_5)
-        [g**2, g, 1, g**2 * .1, g * .1, .1],
+        [g**2, g, 1, g**2 * 0.1, g * 0.1, 0.1],
         # truncated at t=2: a bootstrap point; a terminated last step is trained (target = its reward)
-        [.5 * g + g**2 * .7, .5 + g * .7, .7, g**2, g, 1],
+        [0.5 * g + g**2 * 0.7, 0.5 + g * 0.7, 0.7, g**2, g, 1],
     ]
     trained = torch.tensor([[1, 1, 1, 1, 1, 0], [1, 1, 1, 1, 1, 0], [1, 1, 0, 1, 1, 1]], dtype=torch.float32)
     td, log_pi_fn, value_fn = replay_batch(r, done, term, V, log_mu=torch.full((3, 6), -1.3).tolist())
@@ -241,8 +252,9 @@ def test_vtrace_on_policy_equals_td1_returns_by_hand():
     shaped = td.clone()
     shaped["next", "shaped_reward"] = shaped["next", "reward"].clone()
     shaped["next", "reward"].zero_()
-    out2 = correct_replay(shaped, log_prob_fn=log_pi_fn, value_fn=value_fn, gamma=g, rho_clip=100.0,
-                          reward_key=("next", "shaped_reward"))
+    out2 = correct_replay(
+        shaped, log_prob_fn=log_pi_fn, value_fn=value_fn, gamma=g, rho_clip=100.0, reward_key=("next", "shaped_reward")
+    )
     torch.testing.assert_close(out2["value_target"], out["value_target"])
     with pytest.raises(KeyError, match="shaped_reward"):
         correct_replay(td, log_prob_fn=log_pi_fn, value_fn=value_fn, gamma=g, reward_key=("next", "shaped_reward"))
@@ -300,9 +312,11 @@ def test_vtrace_truncation_and_weights():
 # ---------------------------------------------------------------------------------------------------------------
 def toy_actor_critic():
     actor = ProbabilisticActor(
-        TensorDictModule(nn.Linear(3, 4), in_keys=["obs"], out_keys=["logits"]), in_keys=["logits"],
-        distribution_class=torch.distributions.Categorical, return_log_prob=True,
-    )  # fmt: skip
+        TensorDictModule(nn.Linear(3, 4), in_keys=["obs"], out_keys=["logits"]),
+        in_keys=["logits"],
+        distribution_class=torch.distributions.Categorical,
+        return_log_prob=True,
+    )
     return actor, ValueOperator(nn.Linear(3, 1), in_keys=["obs"])
 
 
@@ -318,8 +332,17 @@ def toy_batch(actor, S=4, L=5, seed=0):
 
 
 def ppo_losses(actor, critic, reduction):
-    return ClipPPOLoss(actor, critic, clip_epsilon=0.2, entropy_coeff=0.01, critic_coeff=0.5,
-                       loss_critic_type="l2", normalize_advantage=True, functional=False, reduction=reduction)
+    return ClipPPOLoss(
+        actor,
+        critic,
+        clip_epsilon=0.2,
+        entropy_coeff=0.01,
+        critic_coeff=0.5,
+        loss_critic_type="l2",
+        normalize_advantage=True,
+        functional=False,
+        reduction=reduction,
+    )
 
 
 @pytest.mark.filterwarnings("ignore::UserWarning")
@@ -357,7 +380,8 @@ def test_weighted_loss_ignores_zero_weight_steps():
         total = out["loss_objective"] + out["loss_critic"] + out["loss_entropy"]
         params = list(actor.parameters()) + list(critic.parameters())
         return [out[k].detach() for k in ("loss_objective", "loss_critic", "loss_entropy")], torch.autograd.grad(
-            total, params)
+            total, params
+        )
 
     base, base_grads = losses_and_grads(replay)
     junk = replay.clone()
@@ -417,9 +441,17 @@ def tiny(tmp_path_factory):
 def _trainer_loss(cfg, modules, reduction):
     """The trainer's ClipPPOLoss settings."""
     p = cfg.ppo
-    return ClipPPOLoss(modules.actor, modules.critic, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coeff,
-                       critic_coeff=p.critic_coeff, loss_critic_type="l2", normalize_advantage=p.normalize_advantage,
-                       functional=False, reduction=reduction)  # fmt: skip
+    return ClipPPOLoss(
+        modules.actor,
+        modules.critic,
+        clip_epsilon=p.clip_epsilon,
+        entropy_coeff=p.entropy_coeff,
+        critic_coeff=p.critic_coeff,
+        loss_critic_type="l2",
+        normalize_advantage=p.normalize_advantage,
+        functional=False,
+        reduction=reduction,
+    )
 
 
 def test_replay_sequences_drop_the_trunk_outputs(tiny):
@@ -436,8 +468,9 @@ def test_replay_without_an_update_is_on_policy(tiny):
     fixed = correct_replay(replay, log_prob_fn=log_prob_fn, value_fn=value_fn, gamma=cfg.ppo.gamma, rho_clip=1.0)
     torch.testing.assert_close(fixed["action_log_prob"], replay["action_log_prob"], atol=1e-4, rtol=0)
     torch.testing.assert_close(fixed["state_value"], replay["state_value"], atol=1e-4, rtol=0)
-    expect_w = (replay[REPLAY_MASK_KEY] & (replay["next", "terminated"].squeeze(-1)
-                                           | (torch.arange(L) < L - 1) & ~replay["next", "done"].squeeze(-1)))
+    expect_w = replay[REPLAY_MASK_KEY] & (
+        replay["next", "terminated"].squeeze(-1) | (torch.arange(L) < L - 1) & ~replay["next", "done"].squeeze(-1)
+    )
     torch.testing.assert_close(fixed[LOSS_WEIGHT_KEY], expect_w.float(), atol=1e-4, rtol=0)
 
 

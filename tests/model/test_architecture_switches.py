@@ -75,17 +75,22 @@ def test_parameter_table_counts_each_arm():
     # pre holds one refiner per modality (3), post one of the same width, off none
     assert post > off and base - off == 3 * (post - off)
     assert total("model.fusion=mean") < base  # the FNO fuser's parameters are gone
-    wide, narrow = total("model.fusion=concat", "model.fusion_hidden=64"), total("model.fusion=concat",
-                                                                               "model.fusion_hidden=8")
+    wide, narrow = (
+        total("model.fusion=concat", "model.fusion_hidden=64"),
+        total("model.fusion=concat", "model.fusion_hidden=8"),
+    )
     d, m = 32, 3  # tiny.yaml: embed_dim 32, three modalities; the concat MLP is Linear(M d, h) -> Linear(h, d)
     assert wide - narrow == (m * d + 1) * 56 + 56 * d
 
 
-@pytest.mark.parametrize("overrides, columns, absent", [
-    (["model.flow.placement=post"], {"gate_fused", "fm_fused", "loss_fm"}, {"gate_state"}),
-    (["model.flow.placement=off", "model.dnc.enabled=false"], set(), {"gate_state", "loss_fm", "gate_fused"}),
-    (["model.fusion=concat"], {"gate_state", "loss_fm"}, {"loss_smooth"}),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "overrides, columns, absent",
+    [
+        (["model.flow.placement=post"], {"gate_fused", "fm_fused", "loss_fm"}, {"gate_state"}),
+        (["model.flow.placement=off", "model.dnc.enabled=false"], set(), {"gate_state", "loss_fm", "gate_fused"}),
+        (["model.fusion=concat"], {"gate_state", "loss_fm"}, {"loss_smooth"}),
+    ],
+)
 def test_each_arm_trains_through_the_trainer(overrides, columns, absent, tmp_path):
     cfg = load_config(TINY, [*overrides, "run.total_frames=128"])
     summary = train(cfg, tmp_path / "run")
@@ -100,12 +105,15 @@ def test_resume_with_another_placement_is_refused(tmp_path):
         train(load_config(TINY, ["run.total_frames=256", "model.flow.placement=post"]), tmp_path / "run")
 
 
-@pytest.mark.parametrize("override, message", [
-    ("model.flow.placement=sideways", "model.flow.placement: expected one of pre, post, off"),
-    ("model.fusion=attention", "model.fusion: expected one of fno, concat, mean"),
-    ("model.fusion_hidden=64", "model.fusion_hidden: got 64, but only model.fusion=concat has an MLP"),
-    ("model.flow.gate_init.imu=-1", "model.flow.gate_init: unknown modality 'imu'"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("model.flow.placement=sideways", "model.flow.placement: expected one of pre, post, off"),
+        ("model.fusion=attention", "model.fusion: expected one of fno, concat, mean"),
+        ("model.fusion_hidden=64", "model.fusion_hidden: got 64, but only model.fusion=concat has an MLP"),
+        ("model.flow.gate_init.imu=-1", "model.flow.gate_init: unknown modality 'imu'"),
+    ],
+)
 def test_bad_switches_are_one_line(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(TINY, [override])

@@ -140,8 +140,14 @@ def _state_encoder_reference(enc: StateFNOEncoder, grid: torch.Tensor, direction
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
 def test_state_encoder_matches_fft_reference(batch):
     enc = StateFNOEncoder(out_dim=16, channels=8, modes=6)
-    grid = torch.stack([torch.randint(0, 11, (*batch, 7, 7)), torch.randint(0, 6, (*batch, 7, 7)),
-                        torch.randint(0, 3, (*batch, 7, 7))], dim=-1)  # fmt: skip
+    grid = torch.stack(
+        [
+            torch.randint(0, 11, (*batch, 7, 7)),
+            torch.randint(0, 6, (*batch, 7, 7)),
+            torch.randint(0, 3, (*batch, 7, 7)),
+        ],
+        dim=-1,
+    )
     direction = torch.randint(0, 4, batch)
     out = enc(grid, direction)
     ref = _state_encoder_reference(enc, grid, direction)
@@ -172,6 +178,7 @@ def test_compile_or_eager_falls_back_loudly(monkeypatch, caplog):
     def broken_compile(fn, **kwargs):
         def run(*a, **k):
             raise RuntimeError("backend exploded")
+
         return run
 
     monkeypatch.setattr(torch, "compile", broken_compile)
@@ -180,7 +187,9 @@ def test_compile_or_eager_falls_back_loudly(monkeypatch, caplog):
         assert torch.equal(f(torch.ones(2)), torch.full((2,), 2.0))
         assert torch.equal(f(torch.ones(2)), torch.full((2,), 2.0))
     assert f.fallbacks == 1
-    assert sum("doubler: torch.compile failed (RuntimeError: backend exploded)" in r.message for r in caplog.records) == 1
+    assert (
+        sum("doubler: torch.compile failed (RuntimeError: backend exploded)" in r.message for r in caplog.records) == 1
+    )
 
 
 def test_compile_or_eager_keeps_bad_input_errors(monkeypatch):
@@ -190,6 +199,7 @@ def test_compile_or_eager_keeps_bad_input_errors(monkeypatch):
         def run(*a, **k):
             compiled_calls.append(1)
             return fn(*a, **k)
+
         return run
 
     monkeypatch.setattr(torch, "compile", counting_compile)

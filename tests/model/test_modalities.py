@@ -6,8 +6,8 @@ import pytest
 import torch
 from torchrl.data import Bounded, Categorical, Composite, OneHot, Unbounded
 
-from freamer_rl.model.config import ModelConfig
 from freamer_rl.errors import EnvSetupError
+from freamer_rl.model.config import ModelConfig
 from freamer_rl.model.factory import build_freamer
 from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
 
@@ -55,8 +55,11 @@ def test_every_registry_entry_encodes(name, batch):
     enc = entry.build_encoder(EncoderContext(name, keys, tuple(SPECS[k] for k in keys), cfg))
     inputs = [SPECS[k].rand(batch) for k in keys]
     out = enc(*inputs)
-    expected = (*batch, cfg.language.num_slots if name == "language" else cfg.vision.num_slots, D) \
-        if entry.kind == "slots" else (*batch, D)
+    expected = (
+        (*batch, cfg.language.num_slots if name == "language" else cfg.vision.num_slots, D)
+        if entry.kind == "slots"
+        else (*batch, D)
+    )
     assert out.shape == expected
     assert torch.isfinite(out).all()
 
@@ -88,20 +91,44 @@ def test_vector_modality_concatenates_several_keys():
 @pytest.mark.parametrize(
     "spec, keys, fragment",
     [
-        (Composite(obs=Unbounded(shape=(3,)), shape=()), None, r"'vector' but .* no \['observation'\].*observation_keys"),
-        (Composite(observation=Categorical(2, shape=(), dtype=torch.bool), shape=()), None,
-         r"'observation' with spec .*dtype=torch.bool.*expected a float or integer"),
-        (Composite(reward_history=Unbounded(shape=(2, 2)), shape=()), None, r"'reward_history'.*expected a float reward history"),
-        (Composite(pixels=Bounded(low=0, high=255, shape=(3, 8, 8), dtype=torch.uint8), shape=()), None,
-         r"'pixels'.*shape=\(3, 8, 8\).*channels-last"),
-        (Composite(grid=Unbounded(shape=(7, 7, 3)), direction=Categorical(4, shape=()), shape=()), None,
-         r"'grid'.*float32.*integer symbolic view"),
+        (
+            Composite(obs=Unbounded(shape=(3,)), shape=()),
+            None,
+            r"'vector' but .* no \['observation'\].*observation_keys",
+        ),
+        (
+            Composite(observation=Categorical(2, shape=(), dtype=torch.bool), shape=()),
+            None,
+            r"'observation' with spec .*dtype=torch.bool.*expected a float or integer",
+        ),
+        (
+            Composite(reward_history=Unbounded(shape=(2, 2)), shape=()),
+            None,
+            r"'reward_history'.*expected a float reward history",
+        ),
+        (
+            Composite(pixels=Bounded(low=0, high=255, shape=(3, 8, 8), dtype=torch.uint8), shape=()),
+            None,
+            r"'pixels'.*shape=\(3, 8, 8\).*channels-last",
+        ),
+        (
+            Composite(grid=Unbounded(shape=(7, 7, 3)), direction=Categorical(4, shape=()), shape=()),
+            None,
+            r"'grid'.*float32.*integer symbolic view",
+        ),
         (Composite(a=Unbounded(shape=(3,)), shape=()), {"state": ["a"]}, r"observation_keys.state.*exactly 2 key"),
     ],
 )
 def test_bad_observation_specs_are_one_line(spec, keys, fragment):
-    mods = list(keys) if keys else [{"observation": "vector", "obs": "vector", "reward_history": "reward",
-                                      "pixels": "vision", "grid": "state"}[next(iter(spec.keys()))]]
+    mods = (
+        list(keys)
+        if keys
+        else [
+            {"observation": "vector", "obs": "vector", "reward_history": "reward", "pixels": "vision", "grid": "state"}[
+                next(iter(spec.keys()))
+            ]
+        ]
+    )
     cfg = tiny_model(mods, observation_keys=keys or {})
     with pytest.raises(EnvSetupError, match=fragment) as err:
         build_freamer(spec, Categorical(2, shape=(), dtype=torch.int64), cfg)

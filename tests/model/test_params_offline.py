@@ -42,11 +42,17 @@ def test_params_counts_a_gym_recipe(capsys):
     recipe = ROOT / "recipes" / "gym" / "cartpole.yaml"
     assert cli.main(["params", str(recipe)]) == 0
     lines = capsys.readouterr().out.splitlines()
-    rows = {line.split("  ")[0]: _count(line) for line in lines
-            if line and line.split()[-1].replace(",", "").isdigit() and not line.startswith("Component")}  # fmt: skip
+    rows = {
+        line.split("  ")[0]: _count(line)
+        for line in lines
+        if line and line.split()[-1].replace(",", "").isdigit() and not line.startswith("Component")
+    }
     assert "Vector encoder (MLP)" in rows and "DNC memory" in rows
     total = rows.pop("Total")
     assert [sum(r[i] for r in rows.values()) for i in range(3)] == total
     model = build_modules(load_config(recipe)).actor_value
-    assert total == [sum(q.numel() for q in model.parameters() if q.requires_grad), 0,
-                     sum(q.numel() for q in model.parameters())]  # fmt: skip
+    assert total == [
+        sum(q.numel() for q in model.parameters() if q.requires_grad),
+        0,
+        sum(q.numel() for q in model.parameters()),
+    ]

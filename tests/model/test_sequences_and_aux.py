@@ -10,11 +10,11 @@ from tensordict import NonTensorData, TensorDict
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import LossModule
 
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.model.losses import FreamerAuxLoss
+from freamer_rl.run.envs import make_batched_env
 from freamer_rl.run.sequences import sequence_replay_buffer, split_sequences
 from freamer_rl.trainers.minigrid_ppo import build_modules
-from freamer_rl.run.envs import make_batched_env
+from freamer_rl.trainers.registry import load_config
 
 TINY = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
 
@@ -24,7 +24,9 @@ def test_split_sequences_keeps_time_order(lead):
     T, L = 8, 4
     t = torch.arange(T).expand(*lead, T)
     env = torch.arange(int(torch.Size(lead).numel())).reshape(*lead, 1).expand(*lead, T)
-    data = TensorDict({"t": t, "env": env, "mission": NonTensorData("go", batch_size=(*lead, T))}, batch_size=(*lead, T))
+    data = TensorDict(
+        {"t": t, "env": env, "mission": NonTensorData("go", batch_size=(*lead, T))}, batch_size=(*lead, T)
+    )
     seqs = split_sequences(data, L)
     assert seqs.batch_size == (int(torch.Size(lead).numel()) * T // L, L)
     assert "mission" not in seqs.keys()

@@ -12,12 +12,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from freamer_rl.run.collection import make_collector
-from freamer_rl.errors import ConfigError
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.config.checks import check_ray_backend
-from freamer_rl.trainers.minigrid_ppo import build_modules, train
+from freamer_rl.errors import ConfigError
+from freamer_rl.run.collection import make_collector
 from freamer_rl.run.envs import make_batched_env
+from freamer_rl.trainers.minigrid_ppo import build_modules, train
+from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"  # 2 envs, 128 frames per batch
@@ -27,10 +27,19 @@ CPU = {"policy_device": "cpu", "env_device": "cpu", "storing_device": "cpu"}
 def _collector(overrides: list[str], total_frames: int = 128, **kwargs):
     cfg = load_config(TINY, overrides)
     modules = build_modules(cfg)
-    env_fns = [functools.partial(make_batched_env, cfg, modules.primers(), 1000 * i)
-               for i in range(cfg.collector.num_collectors)]  # fmt: skip
-    collector = make_collector(cfg.collector, env_fns, modules.policy, frames_per_batch=cfg.ppo.frames_per_batch,
-                               total_frames=total_frames, devices=CPU, **kwargs)  # fmt: skip
+    env_fns = [
+        functools.partial(make_batched_env, cfg, modules.primers(), 1000 * i)
+        for i in range(cfg.collector.num_collectors)
+    ]
+    collector = make_collector(
+        cfg.collector,
+        env_fns,
+        modules.policy,
+        frames_per_batch=cfg.ppo.frames_per_batch,
+        total_frames=total_frames,
+        devices=CPU,
+        **kwargs,
+    )
     return collector, modules
 
 
@@ -50,11 +59,14 @@ def test_local_backend_batch_layout(n, shape):
     assert data.numel() == 128
 
 
-@pytest.mark.parametrize(("override", "match"), [
-    ("collector.backend=ray2", r"collector\.backend: expected local or ray, got 'ray2'"),
-    ("collector.ray_collector_cpus=0", r"collector\.ray_collector_cpus: got 0\.0, expected a finite number > 0"),
-    ("collector.ray_num_cpus=0", r"collector\.ray_num_cpus: got 0, expected an integer >= 1"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    ("override", "match"),
+    [
+        ("collector.backend=ray2", r"collector\.backend: expected local or ray, got 'ray2'"),
+        ("collector.ray_collector_cpus=0", r"collector\.ray_collector_cpus: got 0\.0, expected a finite number > 0"),
+        ("collector.ray_num_cpus=0", r"collector\.ray_num_cpus: got 0, expected an integer >= 1"),
+    ],
+)
 def test_collector_section_errors_name_the_field(override, match):
     with pytest.raises(ConfigError, match=match):
         load_config(TINY, [override])

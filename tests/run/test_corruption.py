@@ -23,11 +23,18 @@ def _env(*transforms, pixels=False):
     return TransformedEnv(base, Compose(InitTracker(), *transforms))
 
 
-@pytest.mark.parametrize("kind, key, level, pixels", [
-    ("gaussian", "pixels", 1.0, True), ("gaussian", "reward_history", 0.5, False), ("salt", "grid", 0.3, False),
-    ("dropout", "grid", 0.5, False), ("stale", "grid", 3, False), ("noisy_tv", "pixels", 0.25, True),
-    ("salt", "mission_tokens", 0.5, False),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "kind, key, level, pixels",
+    [
+        ("gaussian", "pixels", 1.0, True),
+        ("gaussian", "reward_history", 0.5, False),
+        ("salt", "grid", 0.3, False),
+        ("dropout", "grid", 0.5, False),
+        ("stale", "grid", 3, False),
+        ("noisy_tv", "pixels", 0.25, True),
+        ("salt", "mission_tokens", 0.5, False),
+    ],
+)
 def test_every_kind_keeps_the_env_specs(kind, key, level, pixels):
     torch.manual_seed(0)
     env = _env(ModalityCorruption(key, kind, level), pixels=pixels)
@@ -84,42 +91,64 @@ def test_noisy_tv_covers_the_share_of_the_image():
     assert diff[:, :28, :28].float().mean() > 0.9
 
 
-@pytest.mark.parametrize("entry, message", [
-    ({"key": "lidar", "kind": "gaussian"}, r"env.corrupt\[0\].key: the env has no observation 'lidar'"),
-    ({"key": "grid", "kind": "gaussian"}, r"env.corrupt\[0\].kind: gaussian adds noise to float or uint8"),
-    ({"key": "reward_history", "kind": "salt", "level": 0.1}, r"env.corrupt\[0\].kind: salt replaces integer"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "entry, message",
+    [
+        ({"key": "lidar", "kind": "gaussian"}, r"env.corrupt\[0\].key: the env has no observation 'lidar'"),
+        ({"key": "grid", "kind": "gaussian"}, r"env.corrupt\[0\].kind: gaussian adds noise to float or uint8"),
+        ({"key": "reward_history", "kind": "salt", "level": 0.1}, r"env.corrupt\[0\].kind: salt replaces integer"),
+    ],
+)
 def test_a_corruption_the_env_cannot_take_is_one_line(entry, message):
     t = corruption_transforms([CorruptionConfig(**entry)], "train")
     with pytest.raises(ConfigError, match=message):
-        _env(*t).observation_spec
+        _ = _env(*t).observation_spec
 
 
-@pytest.mark.parametrize("override, message", [
-    ("env.corrupt=[{key: grid, kind: blur}]", r"env.corrupt\[0\].kind: expected one of gaussian"),
-    ("env.corrupt=[{key: grid, kind: salt, level: 1.5}]", r"env.corrupt\[0\].level: salt needs a replacement"),
-    ("env.corrupt=[{key: grid, kind: stale, level: 2.5}]", r"env.corrupt\[0\].level: stale needs a whole number"),
-    ("env.corrupt=[{key: grid, kind: salt, when: always}]", r"env.corrupt\[0\].when: expected train, eval or both"),
-    ("env.corrupt=[{kind: salt}]", r"env.corrupt\[0\].key: name the observation key"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("env.corrupt=[{key: grid, kind: blur}]", r"env.corrupt\[0\].kind: expected one of gaussian"),
+        ("env.corrupt=[{key: grid, kind: salt, level: 1.5}]", r"env.corrupt\[0\].level: salt needs a replacement"),
+        ("env.corrupt=[{key: grid, kind: stale, level: 2.5}]", r"env.corrupt\[0\].level: stale needs a whole number"),
+        ("env.corrupt=[{key: grid, kind: salt, when: always}]", r"env.corrupt\[0\].when: expected train, eval or both"),
+        ("env.corrupt=[{kind: salt}]", r"env.corrupt\[0\].key: name the observation key"),
+    ],
+)
 def test_bad_recipe_entries_are_one_line(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(TINY, [override])
 
 
 def test_phases_pick_their_entries():
-    entries = [CorruptionConfig("grid", "salt", 0.1, "train"), CorruptionConfig("grid", "salt", 0.2, "eval"),
-               CorruptionConfig("direction", "stale", 2, "both")]  # fmt: skip
+    entries = [
+        CorruptionConfig("grid", "salt", 0.1, "train"),
+        CorruptionConfig("grid", "salt", 0.2, "eval"),
+        CorruptionConfig("direction", "stale", 2, "both"),
+    ]
     assert [t.level for t in corruption_transforms(entries, "train")] == [0.1, 2.0]
     assert [t.level for t in corruption_transforms(entries, "eval")] == [0.2, 2.0]
 
 
-@pytest.mark.parametrize("trainer, recipe, tiny", [
-    ("minigrid_ppo", TINY, ["run.total_frames=128"]),
-    ("ppo_baseline", ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
-     ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32",
-      "network.hidden=16", "run.total_frames=64", "logging.progress_bar=false"]),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "trainer, recipe, tiny",
+    [
+        ("minigrid_ppo", TINY, ["run.total_frames=128"]),
+        (
+            "ppo_baseline",
+            ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
+            [
+                "env.id=MiniGrid-Empty-5x5-v0",
+                "env.num_envs=2",
+                "ppo.frames_per_batch=64",
+                "ppo.minibatch_size=32",
+                "network.hidden=16",
+                "run.total_frames=64",
+                "logging.progress_bar=false",
+            ],
+        ),
+    ],
+)
 def test_trains_corrupted_and_evaluates_corrupted(trainer, recipe, tiny, tmp_path):
     cfg = load_config(recipe, [*tiny, "env.corrupt=[{key: grid, kind: dropout, level: 1.0, when: both}]"])
     spec = TRAINERS[trainer]
@@ -180,8 +209,9 @@ def test_table13_protocol_perturbs_one_embedding_before_its_refiner(tmp_path):
     torch.testing.assert_close(noisy["refined", "state"], modules.refiners["state"](noisy["embed", "state"]))
     TRAINERS["minigrid_ppo"].train(load_config(TINY, ["run.total_frames=128"]), tmp_path / "run")
     ckpt = sorted((tmp_path / "run" / "checkpoints").glob("checkpoint_*.pt"))[-1]
-    out = TRAINERS["minigrid_ppo"].evaluate(ckpt, episodes=2, corrupt=[CorruptionConfig("embed.state", "gaussian", 8.0,
-                                                                                         "eval")])
+    out = TRAINERS["minigrid_ppo"].evaluate(
+        ckpt, episodes=2, corrupt=[CorruptionConfig("embed.state", "gaussian", 8.0, "eval")]
+    )
     assert out["embedding_noise"] == {"state": 8.0}
     with pytest.raises(ConfigError, match=r"env.corrupt\[0\]: an embedding key"):
         load_config(TINY, ["env.corrupt=[{key: embed.state, kind: gaussian, when: train}]"])
@@ -193,8 +223,21 @@ def test_cli_eval_takes_corruptions(tmp_path, capsys):
     from freamer_rl import cli
 
     TRAINERS["minigrid_ppo"].train(load_config(TINY, ["run.total_frames=128"]), tmp_path / "run")
-    assert cli.main(["eval", str(tmp_path / "run"), "--episodes", "2", "--corrupt", "grid:salt:0.5",
-                     "--corrupt", "embed.state:gaussian:2"]) == 0
+    assert (
+        cli.main(
+            [
+                "eval",
+                str(tmp_path / "run"),
+                "--episodes",
+                "2",
+                "--corrupt",
+                "grid:salt:0.5",
+                "--corrupt",
+                "embed.state:gaussian:2",
+            ]
+        )
+        == 0
+    )
     out = json.loads(capsys.readouterr().out)
     assert out["corrupt"] == [{"key": "grid", "kind": "salt", "level": 0.5, "when": "eval"}]
     assert out["embedding_noise"] == {"state": 2.0}

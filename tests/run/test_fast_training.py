@@ -13,11 +13,11 @@ from torchrl.envs import SerialEnv
 from torchrl.envs.utils import check_env_specs
 from torchrl.modules import set_recurrent_mode
 
-from freamer_rl.run import env_registry
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.fno import StateFNOEncoder
+from freamer_rl.run import env_registry
 from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 from freamer_rl_envs.minigrid import make_minigrid_env
 from freamer_rl_envs.minigrid_vec import MiniGridVecEnv
 
@@ -114,8 +114,14 @@ def test_compiled_dnc_matches_eager_in_both_modes():
     fast = DNCModule(16, 8, 8, compile=True)
     fast.load_state_dict(eager.state_dict())
     b, t = 3, 5
-    td = TensorDict({"fused": 3 * torch.randn(b, t, 16), ("dnc", "memory"): torch.randn(b, t, 8, 8),
-                     "is_init": torch.zeros(b, t, 1, dtype=torch.bool)}, [b, t])  # fmt: skip
+    td = TensorDict(
+        {
+            "fused": 3 * torch.randn(b, t, 16),
+            ("dnc", "memory"): torch.randn(b, t, 8, 8),
+            "is_init": torch.zeros(b, t, 1, dtype=torch.bool),
+        },
+        [b, t],
+    )
     td["is_init"][1, 2] = True
     outs = []
     for m in (eager, fast):
@@ -154,8 +160,10 @@ def test_compiled_dnc_counts_clamps_like_the_eager_step():
         for i in range(t):
             _, mem = reference.step(x[:, i], mem)
     fast = _saturating(DNCModule(4, 2, 3, memory_clip=1.5, compile=True))
-    td = TensorDict({"fused": x, ("dnc", "memory"): torch.zeros(1, t, 2, 3),
-                     "is_init": torch.zeros(1, t, 1, dtype=torch.bool)}, [1, t])  # fmt: skip
+    td = TensorDict(
+        {"fused": x, ("dnc", "memory"): torch.zeros(1, t, 2, 3), "is_init": torch.zeros(1, t, 1, dtype=torch.bool)},
+        [1, t],
+    )
     with set_recurrent_mode(True), torch.no_grad():
         out = fast(td)
     torch.testing.assert_close(out["next", "dnc", "memory"][:, -1], mem)
@@ -165,8 +173,14 @@ def test_compiled_dnc_counts_clamps_like_the_eager_step():
 @pytest.mark.parametrize("batch", [(6,), (2, 3)])
 def test_compiled_state_encoder_matches_eager(batch):
     torch.manual_seed(0)
-    grid = torch.stack([torch.randint(0, 11, (*batch, 7, 7)), torch.randint(0, 6, (*batch, 7, 7)),
-                        torch.randint(0, 3, (*batch, 7, 7))], dim=-1)  # fmt: skip
+    grid = torch.stack(
+        [
+            torch.randint(0, 11, (*batch, 7, 7)),
+            torch.randint(0, 6, (*batch, 7, 7)),
+            torch.randint(0, 3, (*batch, 7, 7)),
+        ],
+        dim=-1,
+    )
     direction = torch.randint(0, 4, batch)
     eager, fast = StateFNOEncoder(16, 8, 6), StateFNOEncoder(16, 8, 6, compile=True)
     fast.load_state_dict(eager.state_dict())

@@ -32,6 +32,7 @@ ENOSPC = OSError(errno.ENOSPC, "No space left on device")
 
 def _strict_json(text: str):
     """json.loads that refuses NaN / Infinity (they are not JSON)."""
+
     def refuse(name):
         raise ValueError(f"not JSON: {name}")
 
@@ -159,8 +160,11 @@ def test_summary_is_valid_json_with_null_for_nan(tiny_run):
 def test_summary_nan_becomes_null(tmp_path):
     life = _lifecycle(tmp_path)
     out = life.write_summary({"rate": math.nan, "nested": {"x": math.inf}, "rows": [1.0, math.nan]})
-    assert _strict_json((tmp_path / "summary.json").read_text()) == {"rate": None, "nested": {"x": None},
-                                                                      "rows": [1.0, None]}  # fmt: skip
+    assert _strict_json((tmp_path / "summary.json").read_text()) == {
+        "rate": None,
+        "nested": {"x": None},
+        "rows": [1.0, None],
+    }
     assert out["rate"] is None
 
 
@@ -236,8 +240,12 @@ def test_curve_draws_sparse_health_columns(tmp_path, monkeypatch):
         Path(fname).write_bytes(b"png")
 
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", capture)
-    plot_learning_curve(rows, tmp_path / "c.png", returns=(("train_return", "train"), ("eval_return_mean", "eval")),
-                        return_label="episode return")  # fmt: skip
+    plot_learning_curve(
+        rows,
+        tmp_path / "c.png",
+        returns=(("train_return", "train"), ("eval_return_mean", "eval")),
+        return_label="episode return",
+    )
     assert lines == [2]  # one panel (no success), both series
 
 
@@ -272,4 +280,3 @@ def test_missing_logger_extra_gives_a_checkout_command(tmp_path, monkeypatch):
         files.make_metrics_logger(tmp_path, "wandb", {}, option="logging.backend")
     assert 'pip install -c constraints.txt -e ".[wandb]"' in str(info.value)
     assert "logging.backend 'wandb'" in str(info.value)
-

@@ -56,8 +56,8 @@ def test_minigrid_trainer_counts_skipped_steps(tmp_path, monkeypatch):
     import csv
     from pathlib import Path
 
-    from freamer_rl.trainers.registry import load_config
     from freamer_rl.trainers.minigrid_ppo import Trainer
+    from freamer_rl.trainers.registry import load_config
 
     tiny = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
     trainer = Trainer(load_config(tiny, ["logging.progress_bar=false"]), tmp_path / "run")
@@ -80,13 +80,15 @@ def test_minigrid_trainer_counts_skipped_steps(tmp_path, monkeypatch):
 def test_resume_takes_lr_and_eps_from_the_config(tmp_path):
     from pathlib import Path
 
-    from freamer_rl.trainers.registry import load_config
     from freamer_rl.trainers.minigrid_ppo import Trainer
+    from freamer_rl.trainers.registry import load_config
 
     tiny = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
     Trainer(load_config(tiny, ["logging.progress_bar=false", "optim.lr=1e-3"]), tmp_path / "run").train()
-    resumed = Trainer(load_config(tiny, ["logging.progress_bar=false", "optim.lr=2e-4", "optim.eps=1e-6",
-                                         "run.total_frames=512"]), tmp_path / "run")
+    resumed = Trainer(
+        load_config(tiny, ["logging.progress_bar=false", "optim.lr=2e-4", "optim.eps=1e-6", "run.total_frames=512"]),
+        tmp_path / "run",
+    )
     assert resumed.frames > 0
     assert all(g["lr"] == 2e-4 and g["eps"] == 1e-6 for g in resumed.optimizer.param_groups)
 
@@ -94,8 +96,8 @@ def test_resume_takes_lr_and_eps_from_the_config(tmp_path):
 def test_linear_lr_schedule_follows_the_frames(tmp_path):
     from pathlib import Path
 
-    from freamer_rl.trainers.registry import load_config
     from freamer_rl.trainers.minigrid_ppo import Trainer
+    from freamer_rl.trainers.registry import load_config
 
     tiny = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
     cfg = load_config(tiny, ["logging.progress_bar=false", "optim.lr=1e-3", "optim.lr_schedule=linear"])

@@ -20,6 +20,8 @@ import pytest
 import torch
 
 from freamer_rl import cli
+from freamer_rl.config.checks import run_name_problem
+from freamer_rl.errors import CheckpointError, ConfigError, FreamerError
 from freamer_rl.run.checkpoint import (
     latest_checkpoint,
     list_checkpoints,
@@ -29,13 +31,10 @@ from freamer_rl.run.checkpoint import (
     save_checkpoint,
     to_plain,
 )
-from freamer_rl.errors import ConfigError
-from freamer_rl.trainers.registry import load_config
-from freamer_rl.errors import CheckpointError, FreamerError
-from freamer_rl.run.rundir import RunDirLock, Terminated
-from freamer_rl.config.checks import run_name_problem
-from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.run.loop import default_run_name
+from freamer_rl.run.rundir import RunDirLock, Terminated
+from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
@@ -102,8 +101,15 @@ def test_to_plain_makes_payloads_weights_only_loadable(tmp_path):
     sd = OrderedDict(w=torch.ones(2))
     sd._metadata = {"": {"version": 1}}  # what nn.Module.state_dict() carries
     payload = {
-        "format": "x/1", "frames": np.int64(7), "lr": np.float32(0.5), "arr": np.arange(3), "q": deque([1.0, 2.0]),
-        "path": tmp_path, "flag": np.bool_(True), "model": sd, "nested": [(np.int32(1), "a")],
+        "format": "x/1",
+        "frames": np.int64(7),
+        "lr": np.float32(0.5),
+        "arr": np.arange(3),
+        "q": deque([1.0, 2.0]),
+        "path": tmp_path,
+        "flag": np.bool_(True),
+        "model": sd,
+        "nested": [(np.int32(1), "a")],
     }
     plain = to_plain(payload)
     assert plain["model"] is sd, "unchanged state dicts keep their identity and _metadata"
@@ -135,8 +141,9 @@ def test_damaged_checkpoints_are_one_line_errors(tmp_path):
         with pytest.raises(CheckpointError) as info:
             load_checkpoint(path)
         assert str(path) in str(info.value) and "\n" not in str(info.value), name
-    health_ckpt = save_checkpoint(tmp_path / "h", {"format": "freamer_rl.health/1", "model": {}, "config": {}},
-                                  filename="checkpoint.pt")
+    health_ckpt = save_checkpoint(
+        tmp_path / "h", {"format": "freamer_rl.health/1", "model": {}, "config": {}}, filename="checkpoint.pt"
+    )
     with pytest.raises(CheckpointError, match="not a MiniGrid checkpoint"):
         load_checkpoint(health_ckpt)
 
@@ -144,8 +151,19 @@ def test_damaged_checkpoints_are_one_line_errors(tmp_path):
 # ----------------------------------------------------------------------------------------------------------------------
 # 2. the latest marker
 # ----------------------------------------------------------------------------------------------------------------------
-BAD_MARKERS = ["../outside.pt", "/etc/passwd", "sub/checkpoint_000000001.pt", "checkpoint_1.pt/../../x.pt", "..",
-               "", "evil.pt", "checkpoint_..pt", "checkpoint_1.pt\x00", "..\\checkpoint_1.pt", "x" * 600]
+BAD_MARKERS = [
+    "../outside.pt",
+    "/etc/passwd",
+    "sub/checkpoint_000000001.pt",
+    "checkpoint_1.pt/../../x.pt",
+    "..",
+    "",
+    "evil.pt",
+    "checkpoint_..pt",
+    "checkpoint_1.pt\x00",
+    "..\\checkpoint_1.pt",
+    "x" * 600,
+]
 
 
 @pytest.mark.parametrize("marker", BAD_MARKERS)
@@ -270,8 +288,10 @@ def test_kill_during_checkpoint_writes_never_corrupts(tmp_path):
 # ----------------------------------------------------------------------------------------------------------------------
 # 4. run-directory lock
 # ----------------------------------------------------------------------------------------------------------------------
-_HOLD = "import sys, time; from freamer_rl.run.rundir import RunDirLock; lock = RunDirLock(sys.argv[1]).acquire(); " \
-        "print('locked', flush=True); time.sleep(60)"
+_HOLD = (
+    "import sys, time; from freamer_rl.run.rundir import RunDirLock; lock = RunDirLock(sys.argv[1]).acquire(); "
+    "print('locked', flush=True); time.sleep(60)"
+)
 
 
 def test_second_run_on_a_locked_dir_is_refused(tmp_path, capsys):
@@ -394,8 +414,17 @@ def test_default_run_name_is_one_folder():
 # 9. kill -9, then the same command
 # ----------------------------------------------------------------------------------------------------------------------
 def _train_cmd(run: Path, total: int) -> list[str]:
-    return [sys.executable, "-m", "freamer_rl.cli", "train", str(TINY), "--run-dir", str(run),
-            f"run.total_frames={total}", "logging.checkpoint_every_frames=128"]
+    return [
+        sys.executable,
+        "-m",
+        "freamer_rl.cli",
+        "train",
+        str(TINY),
+        "--run-dir",
+        str(run),
+        f"run.total_frames={total}",
+        "logging.checkpoint_every_frames=128",
+    ]
 
 
 @pytest.mark.slow  # two real CLI processes (~8 s each on 2 cores)
@@ -431,8 +460,17 @@ def test_kill_9_then_same_command_resumes_the_health_trainer(tmp_path):
 
     run = tmp_path / "run"
     recipe = Path(__file__).resolve().parents[2] / "recipes" / "health" / "health_mlp.yaml"
-    cmd = [sys.executable, "-m", "freamer_rl.cli", "train", str(recipe), *HEALTH_TINY, "collect.iterations=6",
-           "--run-dir", str(run)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "freamer_rl.cli",
+        "train",
+        str(recipe),
+        *HEALTH_TINY,
+        "collect.iterations=6",
+        "--run-dir",
+        str(run),
+    ]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=ENV)
     try:
         deadline = time.monotonic() + 120

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import yaml
 
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.run.files import flatten_config
 from freamer_rl.trainers.minigrid_ppo import Trainer
+from freamer_rl.trainers.registry import load_config
 
 TINY = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
 

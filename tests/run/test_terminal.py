@@ -11,7 +11,13 @@ from pathlib import Path
 import pytest
 
 from freamer_rl.run import metrics
-from freamer_rl.run.metrics import ProgressReporter, format_duration, format_rate, plot_learning_curve, quiet_library_logs
+from freamer_rl.run.metrics import (
+    ProgressReporter,
+    format_duration,
+    format_rate,
+    plot_learning_curve,
+    quiet_library_logs,
+)
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
@@ -21,10 +27,22 @@ def test_piped_tiny_run_shows_start_progress_and_summary(tmp_path):
     """The tiny recipe on run.device=cpu with stdout and stderr piped (not a terminal): no tqdm, no TorchRL INFO."""
     run = tmp_path / "run"
     proc = subprocess.run(
-        [sys.executable, "-m", "freamer_rl.cli", "train", str(TINY), "run.device=cpu", "logging.progress_bar=true",
-         "--run-dir", str(run)],
-        capture_output=True, text=True, timeout=300, cwd=tmp_path,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "freamer_rl.cli",
+            "train",
+            str(TINY),
+            "run.device=cpu",
+            "logging.progress_bar=true",
+            "--run-dir",
+            str(run),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=tmp_path,
+    )
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out[-3000:]
     lines = out.splitlines()
@@ -52,8 +70,12 @@ def _png_size(path: Path) -> tuple[int, int]:
 
 def test_learning_curve_with_and_without_success(tmp_path):
     rows = [
-        {"frames": 128 * i, "episodes": 100 * i, "success_rate": math.nan if i == 1 else i / 10,
-         "return_mean": math.nan if i == 1 else i}
+        {
+            "frames": 128 * i,
+            "episodes": 100 * i,
+            "success_rate": math.nan if i == 1 else i / 10,
+            "return_mean": math.nan if i == 1 else i,
+        }
         for i in range(1, 8)
     ]
     both = tmp_path / "both.png"
@@ -102,7 +124,9 @@ def test_formatting_helpers():
     assert format_duration(3780) == "1 h 3 min"
 
 
-@pytest.mark.parametrize("path", ["run/loop.py", "run/lifecycle.py", "run/metrics.py", "health/trainer.py",
-                                  "config/loader.py", "config/checks.py"])
+@pytest.mark.parametrize(
+    "path",
+    ["run/loop.py", "run/lifecycle.py", "run/metrics.py", "health/trainer.py", "config/loader.py", "config/checks.py"],
+)
 def test_modules_stay_under_600_lines(path):
     assert len((ROOT / "src" / "freamer_rl" / path).read_text().splitlines()) < 600

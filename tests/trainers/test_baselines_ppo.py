@@ -7,12 +7,10 @@ import pytest
 import torch
 from torchrl.data import Bounded, Categorical, Composite
 
+from freamer_rl.errors import ConfigError, EnvSetupError
 from freamer_rl.trainers.baselines.config import NetworkConfig, PPOBaselineConfig
 from freamer_rl.trainers.baselines.networks import ObservationEncoder, build_actor_critic
-from freamer_rl.errors import ConfigError
-from freamer_rl.trainers.registry import load_config
-from freamer_rl.errors import EnvSetupError
-from freamer_rl.trainers.registry import TRAINERS, resolve_checkpoint
+from freamer_rl.trainers.registry import TRAINERS, load_config, resolve_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 MLP_RECIPE = ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml"
@@ -30,12 +28,15 @@ def _specs():
 
 
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
-@pytest.mark.parametrize("kind,keys,shared", [("mlp", ["grid", "direction"], False), ("mlp", ["grid"], True),
-                                              ("cnn", ["pixels", "inventory"], True)])  # fmt: skip
+@pytest.mark.parametrize(
+    "kind,keys,shared",
+    [("mlp", ["grid", "direction"], False), ("mlp", ["grid"], True), ("cnn", ["pixels", "inventory"], True)],
+)
 def test_actor_critic_over_batch_shapes(batch, kind, keys, shared):
     obs_spec, act_spec = _specs()
-    net = build_actor_critic(obs_spec, act_spec, NetworkConfig(kind=kind, observation_keys=keys, hidden=32,
-                                                               shared=shared))  # fmt: skip
+    net = build_actor_critic(
+        obs_spec, act_spec, NetworkConfig(kind=kind, observation_keys=keys, hidden=32, shared=shared)
+    )
     td = obs_spec.rand(batch)
     out = net.get_policy_operator()(td.clone())
     assert out["action"].shape == batch and out["action_log_prob"].shape == batch
@@ -77,9 +78,19 @@ def test_recipes_build_their_schema():
 
 def test_ppo_mlp_learns_empty_5x5(tmp_path):
     """PPO-MLP on Empty-5x5: after 6k frames the agent finishes episodes several times faster than at the start."""
-    cfg = load_config(MLP_RECIPE, ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=4", "ppo.frames_per_batch=512",
-                                   "ppo.minibatch_size=128", "network.hidden=64", "optim.lr=1e-3",
-                                   "run.total_frames=6144", "logging.progress_bar=false"])  # fmt: skip
+    cfg = load_config(
+        MLP_RECIPE,
+        [
+            "env.id=MiniGrid-Empty-5x5-v0",
+            "env.num_envs=4",
+            "ppo.frames_per_batch=512",
+            "ppo.minibatch_size=128",
+            "network.hidden=64",
+            "optim.lr=1e-3",
+            "run.total_frames=6144",
+            "logging.progress_bar=false",
+        ],
+    )
     summary = TRAINERS["ppo_baseline"].train(cfg, tmp_path / "run")
     import csv
 
@@ -95,12 +106,19 @@ def test_ppo_mlp_learns_empty_5x5(tmp_path):
 
 def test_ppo_cnn_on_crafter_logs_the_score_and_resumes(tmp_path):
     pytest.importorskip("crafter")
-    tiny = ["env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32", "ppo.sequence_length=8",
-            "ppo.epochs=1", "network.hidden=32", "network.cnn_channels=[4,4,4]", "logging.progress_bar=false",
-            "logging.checkpoint_every_frames=64"]  # fmt: skip
+    tiny = [
+        "env.num_envs=2",
+        "ppo.frames_per_batch=64",
+        "ppo.minibatch_size=32",
+        "ppo.sequence_length=8",
+        "ppo.epochs=1",
+        "network.hidden=32",
+        "network.cnn_channels=[4,4,4]",
+        "logging.progress_bar=false",
+        "logging.checkpoint_every_frames=64",
+    ]
     TRAINERS["ppo_baseline"].train(load_config(CNN_RECIPE, [*tiny, "run.total_frames=64"]), tmp_path / "run")
-    summary = TRAINERS["ppo_baseline"].train(load_config(CNN_RECIPE, [*tiny, "run.total_frames=128"]),
-                                             tmp_path / "run")  # fmt: skip
+    summary = TRAINERS["ppo_baseline"].train(load_config(CNN_RECIPE, [*tiny, "run.total_frames=128"]), tmp_path / "run")
     assert summary["frames"] == 128 and "crafter_score" in summary
     header = (tmp_path / "run" / "progress.csv").read_text().splitlines()[0]
     assert "crafter_score" in header
@@ -113,27 +131,52 @@ def test_ppo_cnn_on_crafter_logs_the_score_and_resumes(tmp_path):
 def test_resume_refuses_another_network(tmp_path):
     from freamer_rl.errors import CheckpointError
 
-    tiny = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32",
-            "ppo.sequence_length=8", "network.hidden=16", "run.total_frames=64", "logging.progress_bar=false"]
+    tiny = [
+        "env.id=MiniGrid-Empty-5x5-v0",
+        "env.num_envs=2",
+        "ppo.frames_per_batch=64",
+        "ppo.minibatch_size=32",
+        "ppo.sequence_length=8",
+        "network.hidden=16",
+        "run.total_frames=64",
+        "logging.progress_bar=false",
+    ]
     TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, tiny), tmp_path / "run")
     # same weight shapes (direction and grid swapped), other meaning: refused by name, not loaded silently
     with pytest.raises(CheckpointError, match="network.observation_keys"):
-        TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, [*tiny, "network.observation_keys=[direction,grid]",
-                                                                "run.total_frames=128"]), tmp_path / "run")
+        TRAINERS["ppo_baseline"].train(
+            load_config(MLP_RECIPE, [*tiny, "network.observation_keys=[direction,grid]", "run.total_frames=128"]),
+            tmp_path / "run",
+        )
 
 
 def test_resume_refuses_another_trainers_checkpoint_and_legacy_files_go_to_freamer(tmp_path):
-    from freamer_rl.run.checkpoint import latest_checkpoint
     from freamer_rl.errors import CheckpointError
+    from freamer_rl.run.checkpoint import latest_checkpoint
     from freamer_rl.trainers.registry import trainer_of_checkpoint
 
-    tiny = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32",
-            "ppo.sequence_length=8", "network.hidden=16", "run.total_frames=64", "logging.progress_bar=false"]
+    tiny = [
+        "env.id=MiniGrid-Empty-5x5-v0",
+        "env.num_envs=2",
+        "ppo.frames_per_batch=64",
+        "ppo.minibatch_size=32",
+        "ppo.sequence_length=8",
+        "network.hidden=16",
+        "run.total_frames=64",
+        "logging.progress_bar=false",
+    ]
     TRAINERS["ppo_baseline"].train(load_config(MLP_RECIPE, tiny), tmp_path / "run")
     impala = ROOT / "recipes" / "baselines" / "impala_n2s4.yaml"
     # the same network and env, another trainer: refused by name instead of loading PPO's state into IMPALA
-    impala_tiny = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "impala.frames_per_batch=64", "network.hidden=16",
-                   "collector.num_collectors=1", "run.total_frames=128", "logging.progress_bar=false"]
+    impala_tiny = [
+        "env.id=MiniGrid-Empty-5x5-v0",
+        "env.num_envs=2",
+        "impala.frames_per_batch=64",
+        "network.hidden=16",
+        "collector.num_collectors=1",
+        "run.total_frames=128",
+        "logging.progress_bar=false",
+    ]
     with pytest.raises(CheckpointError, match="trainer 'ppo_baseline'.*'impala'"):
         TRAINERS["impala"].train(load_config(impala, impala_tiny), tmp_path / "run")
     # a checkpoint without a "trainer" entry (written before it existed) is FreamerV1's, whatever reuses its format

@@ -7,22 +7,35 @@ from pathlib import Path
 import pytest
 import torch
 
-from freamer_rl.trainers.baselines.config import DreamerConfig
-from freamer_rl.trainers.baselines.dreamer_v3 import evaluate as evaluate_dreamer
-from freamer_rl.trainers.baselines.dreamer_v3 import DreamerLearner, SequenceReplay, build_nets
-from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.errors import ConfigError
-from freamer_rl.trainers.registry import load_config
+from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.run.envs import make_batched_env
-from freamer_rl.trainers.registry import TRAINERS
+from freamer_rl.trainers.baselines.config import DreamerConfig
+from freamer_rl.trainers.baselines.dreamer_v3 import DreamerLearner, SequenceReplay, build_nets
+from freamer_rl.trainers.baselines.dreamer_v3 import evaluate as evaluate_dreamer
+from freamer_rl.trainers.registry import TRAINERS, load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "baselines" / "dreamer_v3_n2s4.yaml"
-TINY = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "dreamer.stoch_categoricals=4", "dreamer.stoch_classes=4",
-        "dreamer.deter=32", "dreamer.hidden=32", "dreamer.mlp_layers=1", "dreamer.frames_per_batch=64",
-        "dreamer.batch_size=4", "dreamer.sequence_length=8", "dreamer.train_every=32", "dreamer.prefill_frames=64",
-        "dreamer.replay_capacity=1000", "dreamer.horizon=5", "run.total_frames=128",
-        "logging.checkpoint_every_frames=64", "logging.progress_bar=false"]  # fmt: skip
+TINY = [
+    "env.id=MiniGrid-Empty-5x5-v0",
+    "env.num_envs=2",
+    "dreamer.stoch_categoricals=4",
+    "dreamer.stoch_classes=4",
+    "dreamer.deter=32",
+    "dreamer.hidden=32",
+    "dreamer.mlp_layers=1",
+    "dreamer.frames_per_batch=64",
+    "dreamer.batch_size=4",
+    "dreamer.sequence_length=8",
+    "dreamer.train_every=32",
+    "dreamer.prefill_frames=64",
+    "dreamer.replay_capacity=1000",
+    "dreamer.horizon=5",
+    "run.total_frames=128",
+    "logging.checkpoint_every_frames=64",
+    "logging.progress_bar=false",
+]
 
 
 @pytest.fixture(scope="module")
@@ -113,16 +126,19 @@ def test_train_checkpoint_resume_evaluate(tmp_path):
     assert rows[-1]["component"] == "Total" and rows[-1]["trainable"] > 0
 
 
-@pytest.mark.parametrize("override, field", [
-    ("dreamer.horizon=0", r"dreamer.horizon: got 0, expected an integer in \[1, "),
-    ("dreamer.gamma=1.5", "dreamer.gamma"),
-    ("dreamer.sequence_length=64", "dreamer.sequence_length"),
-    ("dreamer.observation_keys=[]", "dreamer.observation_keys"),
-    ("optim.lr=0", "optim.lr"),
-    ("dreamer.frames_per_batch=65", "dreamer.frames_per_batch"),
-    # 1,000 frames of capacity hold 31 whole 32-step sequences = 992 < 1,000 prefill: would never start training
-    ("dreamer.prefill_frames=1000", "dreamer.replay_capacity: .*whole sequences"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "override, field",
+    [
+        ("dreamer.horizon=0", r"dreamer.horizon: got 0, expected an integer in \[1, "),
+        ("dreamer.gamma=1.5", "dreamer.gamma"),
+        ("dreamer.sequence_length=64", "dreamer.sequence_length"),
+        ("dreamer.observation_keys=[]", "dreamer.observation_keys"),
+        ("optim.lr=0", "optim.lr"),
+        ("dreamer.frames_per_batch=65", "dreamer.frames_per_batch"),
+        # 1,000 frames of capacity hold 31 whole 32-step sequences = 992 < 1,000 prefill: would never start training
+        ("dreamer.prefill_frames=1000", "dreamer.replay_capacity: .*whole sequences"),
+    ],
+)
 def test_validation_names_the_field(override, field):
     with pytest.raises(ConfigError, match=field.replace("(", r"\(")):
         load_config(RECIPE, [*TINY, override])
@@ -141,10 +157,20 @@ def test_image_the_encoder_cannot_halve_is_named():
 
 def test_crafter_pixels_through_the_cnn_encoder_and_decoder():
     pytest.importorskip("crafter")
-    cfg = load_config(ROOT / "recipes" / "baselines" / "dreamer_v3_crafter.yaml",
-                      ["env.num_envs=2", "dreamer.deter=32", "dreamer.hidden=32", "dreamer.cnn_depth=4",
-                       "dreamer.frames_per_batch=32", "dreamer.batch_size=2", "dreamer.sequence_length=8",
-                       "dreamer.prefill_frames=32", "dreamer.replay_capacity=1000"])  # fmt: skip
+    cfg = load_config(
+        ROOT / "recipes" / "baselines" / "dreamer_v3_crafter.yaml",
+        [
+            "env.num_envs=2",
+            "dreamer.deter=32",
+            "dreamer.hidden=32",
+            "dreamer.cnn_depth=4",
+            "dreamer.frames_per_batch=32",
+            "dreamer.batch_size=2",
+            "dreamer.sequence_length=8",
+            "dreamer.prefill_frames=32",
+            "dreamer.replay_capacity=1000",
+        ],
+    )
     torch.manual_seed(0)
     nets = build_nets(cfg)
     assert nets.image_key == "pixels" and not nets.vector_keys

@@ -8,26 +8,32 @@ from pathlib import Path
 import pytest
 import torch
 
-from freamer_rl.trainers.baselines.impala import ImpalaTrainer
-from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.errors import ConfigError
-from freamer_rl.trainers.registry import load_config
+from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.run.envs import probe_specs
-from freamer_rl.trainers.registry import TRAINERS
+from freamer_rl.trainers.baselines.impala import ImpalaTrainer
+from freamer_rl.trainers.registry import TRAINERS, load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 RECIPE = ROOT / "recipes" / "baselines" / "impala_n2s4.yaml"
-TINY = ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "network.hidden=16", "impala.frames_per_batch=64",
-        "logging.checkpoint_every_frames=128",
-        "logging.progress_bar=false"]  # fmt: skip
+TINY = [
+    "env.id=MiniGrid-Empty-5x5-v0",
+    "env.num_envs=2",
+    "network.hidden=16",
+    "impala.frames_per_batch=64",
+    "logging.checkpoint_every_frames=128",
+    "logging.progress_bar=false",
+]
 GAMMA = 0.9
 B, T = 2, 6
 
 
 @pytest.fixture(scope="module")
 def trainer(tmp_path_factory):
-    cfg = load_config(RECIPE, [*TINY, "collector.num_collectors=1", f"impala.gamma={GAMMA}", "impala.rho_clip=1.0",
-                               "impala.c_clip=1.0"])  # fmt: skip
+    cfg = load_config(
+        RECIPE,
+        [*TINY, "collector.num_collectors=1", f"impala.gamma={GAMMA}", "impala.rho_clip=1.0", "impala.c_clip=1.0"],
+    )
     return ImpalaTrainer(cfg, tmp_path_factory.mktemp("vtrace") / "run")
 
 
@@ -71,8 +77,11 @@ def _reference(data, v, nv, log_pi, log_mu, rho_bar, c_bar):
         for t in reversed(range(T)):
             boot = 0.0 if term[b, t] else float(nv[b, t])
             delta = min(float(rho[b, t]), rho_bar) * (float(r[b, t]) + GAMMA * boot - float(v[b, t]))
-            cont = 0.0 if (done[b, t] or vs_next is None) else GAMMA * min(float(rho[b, t]), c_bar) * (
-                vs_next - float(v[b, t + 1]))
+            cont = (
+                0.0
+                if (done[b, t] or vs_next is None)
+                else GAMMA * min(float(rho[b, t]), c_bar) * (vs_next - float(v[b, t + 1]))
+            )
             targets[b, t] = float(v[b, t]) + delta + cont
             after = boot if (done[b, t] or vs_next is None) else vs_next
             advs[b, t] = min(float(rho[b, t]), rho_bar) * (float(r[b, t]) + GAMMA * after - float(v[b, t]))
@@ -124,14 +133,17 @@ def test_off_policy_vtrace_clips_the_ratios(trainer):
     torch.testing.assert_close(adv[..., 0], ref_adv)
 
 
-@pytest.mark.parametrize("override,field", [
-    ("impala.rho_clip=0.0", "impala.rho_clip"),
-    ("impala.c_clip=2.0", "impala.c_clip"),
-    ("impala.optimizer=sgd", "impala.optimizer"),
-    ("impala.rmsprop_alpha=1.0", "impala.rmsprop_alpha"),
-    ("impala.minibatches=3", "impala.minibatches"),
-    ("network.kind=rnn", "network.kind"),
-])  # fmt: skip
+@pytest.mark.parametrize(
+    "override,field",
+    [
+        ("impala.rho_clip=0.0", "impala.rho_clip"),
+        ("impala.c_clip=2.0", "impala.c_clip"),
+        ("impala.optimizer=sgd", "impala.optimizer"),
+        ("impala.rmsprop_alpha=1.0", "impala.rmsprop_alpha"),
+        ("impala.minibatches=3", "impala.minibatches"),
+        ("network.kind=rnn", "network.kind"),
+    ],
+)
 def test_validation_names_the_field(override, field):
     with pytest.raises(ConfigError, match=field.replace(".", r"\.")):
         load_config(RECIPE, [*TINY, override])
@@ -147,8 +159,7 @@ def test_async_run_checkpoints_resumes_and_evaluates(tmp_path):
     assert ckpt is not None and read_checkpoint(ckpt)["trainer"] == "impala"
     with (run / "progress.csv").open() as f:
         rows = list(csv.DictReader(f))
-    for col in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm", "rho_mean", "rho_clipped",
-                "policy_lag"):  # fmt: skip
+    for col in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm", "rho_mean", "rho_clipped", "policy_lag"):
         assert col in rows[0] and all(math.isfinite(float(r[col])) for r in rows), col
     assert all(float(r["policy_lag"]) >= 0 for r in rows)
     summary = spec.train(load_config(RECIPE, [*first, "run.total_frames=384"]), run)
@@ -160,8 +171,7 @@ def test_async_run_checkpoints_resumes_and_evaluates(tmp_path):
 
 
 def test_rmsprop_option(tmp_path):
-    cfg = load_config(RECIPE, [*TINY, "collector.num_collectors=1", "impala.optimizer=rmsprop",
-                               "run.total_frames=64"])  # fmt: skip
+    cfg = load_config(RECIPE, [*TINY, "collector.num_collectors=1", "impala.optimizer=rmsprop", "run.total_frames=64"])
     trainer = ImpalaTrainer(cfg, tmp_path / "run")
     assert isinstance(trainer.optimizer, torch.optim.RMSprop)
     assert trainer.train()["frames"] == 64
@@ -183,5 +193,6 @@ def test_resume_refuses_another_optimizer(tmp_path):
     TRAINERS["impala"].train(load_config(RECIPE, one), tmp_path / "run")
     # Adam's moments loaded into RMSprop would crash at the first step (no 'square_avg'): refused by name instead
     with pytest.raises(CheckpointError, match="impala.optimizer=adam"):
-        TRAINERS["impala"].train(load_config(RECIPE, [*one, "impala.optimizer=rmsprop", "run.total_frames=128"]),
-                                 tmp_path / "run")  # fmt: skip
+        TRAINERS["impala"].train(
+            load_config(RECIPE, [*one, "impala.optimizer=rmsprop", "run.total_frames=128"]), tmp_path / "run"
+        )

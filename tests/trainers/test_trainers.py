@@ -8,13 +8,12 @@ from pathlib import Path
 import pytest
 
 from freamer_rl import cli
+from freamer_rl.errors import ConfigError
+from freamer_rl.health.config import HealthConfig
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
-from freamer_rl.errors import ConfigError
 from freamer_rl.trainers.minigrid_ppo import FreamerConfig
-from freamer_rl.trainers.registry import load_config
-from freamer_rl.health.config import HealthConfig
-from freamer_rl.trainers.registry import TRAINERS, trainer_of_checkpoint
+from freamer_rl.trainers.registry import TRAINERS, load_config, trainer_of_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "tests" / "health"))
@@ -22,27 +21,69 @@ from test_health_pipeline import TINY as HEALTH_TINY  # noqa: E402
 
 # one tiny recipe per registry entry: (recipe, overrides of the first run, overrides that extend it for the resume)
 TINY = {
-    "minigrid_ppo": (ROOT / "recipes" / "tiny.yaml", ["run.total_frames=128", "logging.progress_bar=false"],
-                     ["run.total_frames=256"]),
-    "health": (ROOT / "recipes" / "health" / "health_mlp.yaml", [*HEALTH_TINY, "collect.iterations=1"],
-               ["collect.iterations=2"]),
-    "ppo_baseline": (ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
-                     ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "ppo.frames_per_batch=64",
-                      "ppo.minibatch_size=32", "ppo.sequence_length=8", "network.hidden=16", "run.total_frames=64",
-                      "logging.checkpoint_every_frames=64", "logging.progress_bar=false"], ["run.total_frames=128"]),
-    "dreamer_v3": (ROOT / "recipes" / "baselines" / "dreamer_v3_n2s4.yaml",
-                   ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "dreamer.stoch_categoricals=4",
-                    "dreamer.stoch_classes=4", "dreamer.deter=32", "dreamer.hidden=32", "dreamer.mlp_layers=1",
-                    "dreamer.frames_per_batch=64", "dreamer.batch_size=4", "dreamer.sequence_length=8",
-                    "dreamer.train_every=32", "dreamer.prefill_frames=64", "dreamer.replay_capacity=1000",
-                    "dreamer.horizon=5", "run.total_frames=64", "logging.checkpoint_every_frames=64",
-                    "logging.progress_bar=false"], ["run.total_frames=128"]),
+    "minigrid_ppo": (
+        ROOT / "recipes" / "tiny.yaml",
+        ["run.total_frames=128", "logging.progress_bar=false"],
+        ["run.total_frames=256"],
+    ),
+    "health": (
+        ROOT / "recipes" / "health" / "health_mlp.yaml",
+        [*HEALTH_TINY, "collect.iterations=1"],
+        ["collect.iterations=2"],
+    ),
+    "ppo_baseline": (
+        ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
+        [
+            "env.id=MiniGrid-Empty-5x5-v0",
+            "env.num_envs=2",
+            "ppo.frames_per_batch=64",
+            "ppo.minibatch_size=32",
+            "ppo.sequence_length=8",
+            "network.hidden=16",
+            "run.total_frames=64",
+            "logging.checkpoint_every_frames=64",
+            "logging.progress_bar=false",
+        ],
+        ["run.total_frames=128"],
+    ),
+    "dreamer_v3": (
+        ROOT / "recipes" / "baselines" / "dreamer_v3_n2s4.yaml",
+        [
+            "env.id=MiniGrid-Empty-5x5-v0",
+            "env.num_envs=2",
+            "dreamer.stoch_categoricals=4",
+            "dreamer.stoch_classes=4",
+            "dreamer.deter=32",
+            "dreamer.hidden=32",
+            "dreamer.mlp_layers=1",
+            "dreamer.frames_per_batch=64",
+            "dreamer.batch_size=4",
+            "dreamer.sequence_length=8",
+            "dreamer.train_every=32",
+            "dreamer.prefill_frames=64",
+            "dreamer.replay_capacity=1000",
+            "dreamer.horizon=5",
+            "run.total_frames=64",
+            "logging.checkpoint_every_frames=64",
+            "logging.progress_bar=false",
+        ],
+        ["run.total_frames=128"],
+    ),
     # keeps the recipe's two asynchronous actor processes
-    "impala": (ROOT / "recipes" / "baselines" / "impala_n2s4.yaml",
-               ["env.id=MiniGrid-Empty-5x5-v0", "env.num_envs=2", "network.hidden=16", "impala.frames_per_batch=64",
-                "run.total_frames=128",
-                "logging.checkpoint_every_frames=64", "logging.progress_bar=false"], ["run.total_frames=256"]),
-}  # fmt: skip
+    "impala": (
+        ROOT / "recipes" / "baselines" / "impala_n2s4.yaml",
+        [
+            "env.id=MiniGrid-Empty-5x5-v0",
+            "env.num_envs=2",
+            "network.hidden=16",
+            "impala.frames_per_batch=64",
+            "run.total_frames=128",
+            "logging.checkpoint_every_frames=64",
+            "logging.progress_bar=false",
+        ],
+        ["run.total_frames=256"],
+    ),
+}
 
 
 @pytest.fixture(autouse=True)

@@ -9,19 +9,18 @@ from pathlib import Path
 
 import pytest
 import torch
-from torchrl.collectors import Collector
 from torchrl.envs import Compose, InitTracker, TransformedEnv
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 
 from freamer_rl import cli
-from freamer_rl.run import env_registry
-from freamer_rl.trainers.registry import load_config
 from freamer_rl.errors import CheckpointError, EnvSetupError
 from freamer_rl.model.factory import build_freamer
+from freamer_rl.run import env_registry
+from freamer_rl.run.envs import make_batched_env, make_single_env
 from freamer_rl.run.sequences import split_sequences
 from freamer_rl.trainers.minigrid_ppo import Trainer, build_modules
-from freamer_rl.run.envs import make_batched_env, make_single_env
+from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
@@ -31,8 +30,13 @@ def tiny_cfg(*overrides):
     return load_config(TINY, list(overrides))
 
 
-MODALITY_SETS = [["state"], ["reward"], ["language", "reward"], ["state", "language", "reward"],
-                 ["state", "vision", "language", "reward"]]
+MODALITY_SETS = [
+    ["state"],
+    ["reward"],
+    ["language", "reward"],
+    ["state", "language", "reward"],
+    ["state", "vision", "language", "reward"],
+]
 
 
 @pytest.mark.parametrize("mods", MODALITY_SETS, ids=["+".join(m) for m in MODALITY_SETS])
@@ -114,7 +118,16 @@ def test_trainer_run_directory_and_resume(tmp_path):
     info = json.loads((run / "run_info.json").read_text())
     assert "commit" in info
     header = (run / "progress.csv").read_text().splitlines()[0].split(",")
-    for col in ("frames", "success_rate", "return_mean", "loss_objective", "loss_fm", "gate_state", "gate_reward", "fps"):
+    for col in (
+        "frames",
+        "success_rate",
+        "return_mean",
+        "loss_objective",
+        "loss_fm",
+        "gate_state",
+        "gate_reward",
+        "fps",
+    ):
         assert col in header
     assert any((run / "metrics").rglob("*.csv")), "TorchRL CSV logger files"
     # resume: same run dir, more frames -> continues from the checkpoint
@@ -139,7 +152,7 @@ def test_smoothness_term_reaches_encoders_only_when_asked(tmp_path, into_encoder
     fuser_params = {id(p) for p in trainer.modules.fuser.parameters()}
     upstream = [p for p in trainer.modules.trunk.parameters() if p.requires_grad and id(p) not in fuser_params]
     grads = torch.autograd.grad(loss, list(trainer.modules.fuser.parameters()) + upstream, allow_unused=True)
-    fuser_grads, upstream_grads = grads[: len(fuser_params)], grads[len(fuser_params):]
+    fuser_grads, upstream_grads = grads[: len(fuser_params)], grads[len(fuser_params) :]
     reached = [g is not None and float(g.abs().sum()) > 0 for g in upstream_grads]
     assert any(g is not None and float(g.abs().sum()) > 0 for g in fuser_grads)
     assert any(reached) == into_encoders
@@ -148,11 +161,7 @@ def test_smoothness_term_reaches_encoders_only_when_asked(tmp_path, into_encoder
 def test_frozen_encoders_are_left_out_of_training(tmp_path):
     cfg = tiny_cfg("model.freeze_encoders=[language, reward]", "run.total_frames=128")
     trainer = Trainer(cfg, tmp_path / "run")
-    frozen = {
-        name: p.detach().clone()
-        for name, p in trainer.modules.trunk.named_parameters()
-        if not p.requires_grad
-    }
+    frozen = {name: p.detach().clone() for name, p in trainer.modules.trunk.named_parameters() if not p.requires_grad}
     assert frozen, "the language and reward encoders should be frozen"
     assert all(p.requires_grad for p in trainer.params)  # the optimiser holds trainable parameters only
     trained = {n: p.detach().clone() for n, p in trainer.modules.trunk.named_parameters() if p.requires_grad}
@@ -169,7 +178,9 @@ def test_frozen_encoders_are_left_out_of_training(tmp_path):
 
 
 def test_two_worker_collection(tmp_path):
-    summary = Trainer(tiny_cfg("collector.num_collectors=2", "env.num_envs=1", "run.total_frames=256"), tmp_path / "r").train()
+    summary = Trainer(
+        tiny_cfg("collector.num_collectors=2", "env.num_envs=1", "run.total_frames=256"), tmp_path / "r"
+    ).train()
     assert summary["frames"] == 256
 
 
@@ -187,8 +198,14 @@ def test_eval_command(tmp_path, capsys):
         (["ppo.lrr=1"], "unknown key 'ppo.lrr'"),
         (["optim.lr=fast"], "optim.lr: expected float"),
         (["env.id=MiniGrid-DoesNotExist-v0"], "MiniGrid-DoesNotExist-v0"),
-        (["model.vision.backbone=clip", "model.modalities=[vision]", "model.vision.clip_checkpoint=/nonexistent/clip.pt"],
-         "clip"),
+        (
+            [
+                "model.vision.backbone=clip",
+                "model.modalities=[vision]",
+                "model.vision.clip_checkpoint=/nonexistent/clip.pt",
+            ],
+            "clip",
+        ),
     ],
 )
 def test_cli_user_errors_are_one_line(tmp_path, capsys, args, fragment):
@@ -225,7 +242,9 @@ def test_cli_missing_modality(tmp_path, capsys, monkeypatch):
 def test_console_script_installed(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "freamer_rl.cli", "train", str(TINY), "ppo.epochs=many"],
-        capture_output=True, text=True, timeout=120,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines() == ["error: ppo.epochs: expected int, got str 'many'"]

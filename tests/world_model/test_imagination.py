@@ -28,8 +28,9 @@ def latents(shape) -> TensorDict:
 
 def actor_critic(env):
     policy = ProbabilisticActor(
-        TensorDictModule(MLP(in_features=D + S, out_features=N_ACT, num_cells=[32]), in_keys=["latent"],
-                         out_keys=["logits"]),
+        TensorDictModule(
+            MLP(in_features=D + S, out_features=N_ACT, num_cells=[32]), in_keys=["latent"], out_keys=["logits"]
+        ),
         in_keys=["logits"],
         distribution_class=torch.distributions.Categorical,
         return_log_prob=True,
@@ -59,9 +60,7 @@ def test_rollout_shape_h15(shape):
     assert traj["action"].shape == (*shape, 15)
     # the step is Markov in (deter, stoch): next state of step t is the state of step t+1
     torch.testing.assert_close(traj["next", "deter"][..., :-1, :], traj["deter"][..., 1:, :])
-    torch.testing.assert_close(
-        traj["latent"], torch.cat([traj["deter"], traj["stoch"]], -1)
-    )
+    torch.testing.assert_close(traj["latent"], torch.cat([traj["deter"], traj["stoch"]], -1))
 
 
 def test_reset_without_latents_raises():
@@ -98,10 +97,16 @@ def test_world_model_latents_seed_the_env():
     wm = small_wm()
     batch = TensorDict(
         {
-            "imu": torch.randn(2, 5, 6), "hr_features": torch.randn(2, 5, 3), "action": torch.randint(0, N_ACT, (2, 5)),
-            "next": {"imu": torch.randn(2, 5, 6), "hr_features": torch.randn(2, 5, 3), "reward": torch.randn(2, 5, 1),
-                     "done": torch.zeros(2, 5, 1, dtype=torch.bool),
-                     "terminated": torch.zeros(2, 5, 1, dtype=torch.bool)},
+            "imu": torch.randn(2, 5, 6),
+            "hr_features": torch.randn(2, 5, 3),
+            "action": torch.randint(0, N_ACT, (2, 5)),
+            "next": {
+                "imu": torch.randn(2, 5, 6),
+                "hr_features": torch.randn(2, 5, 3),
+                "reward": torch.randn(2, 5, 1),
+                "done": torch.zeros(2, 5, 1, dtype=torch.bool),
+                "terminated": torch.zeros(2, 5, 1, dtype=torch.bool),
+            },
         },
         [2, 5],
     )
@@ -117,8 +122,9 @@ def test_imagination_update(lambda_return):
     policy, value = actor_critic(env)
     before = [p.clone() for p in policy.parameters()]
     wm_before = [p.clone() for p in env.world_model.parameters()]
-    algo = ImaginationPPO(env, policy, value, epochs=2, num_minibatches=2, lr=1e-3,
-                          lambda_return_actor_critic=lambda_return)
+    algo = ImaginationPPO(
+        env, policy, value, epochs=2, num_minibatches=2, lr=1e-3, lambda_return_actor_critic=lambda_return
+    )
     metrics = algo.update(latents((16,)))
     assert all(math.isfinite(v) for v in metrics.values()), metrics
     loss_key = "loss_actor" if lambda_return else "loss_objective"
@@ -132,7 +138,9 @@ def test_imagination_update(lambda_return):
 def test_bench_imagination_smoke():
     res = run(batch=4, horizon=3, rounds=1, rollouts_per_round=1)
     assert set(res["median_steps_per_s"]) == {
-        "rssm_world_model_env", "rssm_world_model_env_no_continuation", "torchrl_dreamer_env",
+        "rssm_world_model_env",
+        "rssm_world_model_env_no_continuation",
+        "torchrl_dreamer_env",
         "torchrl_dreamer_env_with_continuation",
     }
     assert all(v > 0 for v in res["median_steps_per_s"].values())

@@ -210,9 +210,18 @@ def _synthetic_buffer(n_episodes=24, length=16, seed=0) -> ReplayBuffer:
         steps.append(
             TensorDict(
                 {
-                    "imu": imu, "hr_features": hr, "action": a, "episode": torch.arange(n_episodes),
-                    "next": {"imu": nimu, "hr_features": nhr, "reward": x_next[:, :1], "done": term,
-                             "terminated": term.clone(), "truncated": torch.zeros_like(term)},
+                    "imu": imu,
+                    "hr_features": hr,
+                    "action": a,
+                    "episode": torch.arange(n_episodes),
+                    "next": {
+                        "imu": nimu,
+                        "hr_features": nhr,
+                        "reward": x_next[:, :1],
+                        "done": term,
+                        "terminated": term.clone(),
+                        "truncated": torch.zeros_like(term),
+                    },
                 },
                 [n_episodes],
             )
@@ -261,8 +270,7 @@ def test_recon_norm_running_stats_and_decode():
     for i, k in enumerate(OBS_DIMS):
         x = torch.cat([s[k].reshape(-1, OBS_DIMS[k]) for s in seqs]).double()
         assert torch.allclose(wm.recon_mean_0 if i == 0 else wm.recon_mean_1, x.mean(0).float(), atol=1e-5)
-        assert torch.allclose(wm.recon_var_0 if i == 0 else wm.recon_var_1, x.var(0, unbiased=False).float(),
-                              atol=1e-4)  # fmt: skip
+        assert torch.allclose(wm.recon_var_0 if i == 0 else wm.recon_var_1, x.var(0, unbiased=False).float(), atol=1e-4)
     assert float(wm.recon_count) == 4 * 6 + 3 * 6
     # targets are standardised; decode(latent) maps the decoder output back to raw units
     tgt = wm.recon_target("imu", b1["imu"])

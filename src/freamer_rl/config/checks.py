@@ -22,10 +22,21 @@ import yaml
 
 from freamer_rl.errors import ConfigError
 
-
-__all__ = ["Range", "POSITIVE", "NON_NEGATIVE", "UNIT_INTERVAL", "check_recipe_file", "check_device_name",
-           "resolve_device", "config_numbers", "check_numbers", "check_collector", "check_ray_backend",
-           "check_logging", "run_name_problem"]
+__all__ = [
+    "Range",
+    "POSITIVE",
+    "NON_NEGATIVE",
+    "UNIT_INTERVAL",
+    "check_recipe_file",
+    "check_device_name",
+    "resolve_device",
+    "config_numbers",
+    "check_numbers",
+    "check_collector",
+    "check_ray_backend",
+    "check_logging",
+    "run_name_problem",
+]
 
 
 class RecipeLoader(yaml.SafeLoader):
@@ -80,8 +91,7 @@ def check_recipe_file(path: Path) -> None:
         data = yaml.load(path.read_text(), Loader=_UniqueKeyLoader)  # noqa: S506 (a SafeLoader subclass)
     except _DuplicateKey as dup:
         raise ConfigError(
-            f"{path}:{dup.line}: duplicate key '{dup.key}' (first given at line {dup.first_line}); "
-            f"give each key once"
+            f"{path}:{dup.line}: duplicate key '{dup.key}' (first given at line {dup.first_line}); give each key once"
         ) from None
     except yaml.YAMLError:
         return
@@ -116,8 +126,9 @@ def resolve_device(name: str) -> torch.device:
             )
         count = torch.cuda.device_count()
         if device.index is not None and device.index >= count:
-            raise ConfigError(f"run.device: got {name!r}, but only {count} CUDA device(s) are visible "
-                              f"(cuda:0 to cuda:{count - 1})")  # fmt: skip
+            raise ConfigError(
+                f"run.device: got {name!r}, but only {count} CUDA device(s) are visible (cuda:0 to cuda:{count - 1})"
+            )
     return device
 
 
@@ -181,12 +192,16 @@ def check_collector(c: Any) -> None:
     if c.backend not in ("local", "ray"):
         raise ConfigError(f"collector.backend: expected local or ray, got {c.backend!r}")
     if c.ray_address is not None and c.ray_num_cpus is not None:
-        raise ConfigError(f"collector.ray_num_cpus: got {c.ray_num_cpus}, but collector.ray_address="
-                          f"{c.ray_address!r} joins a running Ray cluster, whose CPUs are set by `ray start "
-                          "--num-cpus`; leave ray_num_cpus unset")  # fmt: skip
+        raise ConfigError(
+            f"collector.ray_num_cpus: got {c.ray_num_cpus}, but collector.ray_address="
+            f"{c.ray_address!r} joins a running Ray cluster, whose CPUs are set by `ray start "
+            "--num-cpus`; leave ray_num_cpus unset"
+        )
     if c.ray_address is not None and not c.ray_address.strip():
-        raise ConfigError("collector.ray_address: got an empty string; give auto or host:6379, "
-                          "or leave it unset to start a local Ray instance")  # fmt: skip
+        raise ConfigError(
+            "collector.ray_address: got an empty string; give auto or host:6379, "
+            "or leave it unset to start a local Ray instance"
+        )
 
 
 def check_ray_backend(section: Any, policy: Any) -> None:
@@ -196,12 +211,16 @@ def check_ray_backend(section: Any, policy: Any) -> None:
     is not installed.
     """
     if importlib.util.find_spec("ray") is None:
-        raise ConfigError('collector.backend: got \'ray\', but ray is not installed; pip install -c constraints.txt '
-                          '-e ".[ray]" (or collector.backend=local)')  # fmt: skip
+        raise ConfigError(
+            "collector.backend: got 'ray', but ray is not installed; pip install -c constraints.txt "
+            '-e ".[ray]" (or collector.backend=local)'
+        )
     devices = {p.device.type for p in policy.parameters()}
     if devices - {"cpu"}:
-        raise ConfigError(f"collector.backend: 'ray' runs the policy in CPU actors, but it is on {sorted(devices)}; "
-                          "use run.device=cpu with the ray backend")  # fmt: skip
+        raise ConfigError(
+            f"collector.backend: 'ray' runs the policy in CPU actors, but it is on {sorted(devices)}; "
+            "use run.device=cpu with the ray backend"
+        )
 
 
 def check_logging(section: Any) -> None:

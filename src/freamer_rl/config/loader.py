@@ -17,15 +17,14 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from pathlib import Path
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import yaml
 
 from freamer_rl.config.checks import check_recipe_file, load_yaml
 from freamer_rl.errors import ConfigError
-
 
 # --------------------------------------------------------------------------------------------------------------
 # Conversion and validation

@@ -12,16 +12,24 @@ Number ranges live beside the sections in tables (:data:`BASE_RANGES`, :data:`PP
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 import math
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 from freamer_rl.config.checks import (
-    BATCH_LIMIT, NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range, size_range, check_collector, check_device_name, check_logging, check_numbers,
+    BATCH_LIMIT,
+    NON_NEGATIVE,
+    POSITIVE,
+    UNIT_INTERVAL,
+    Range,
+    check_collector,
+    check_device_name,
+    check_logging,
+    check_numbers,
     run_name_problem,
+    size_range,
 )
 from freamer_rl.errors import ConfigError
-
 
 #: kind -> (range check of ``level``, what it must be); integer-only kinds are checked against the key's dtype
 CORRUPTION_KINDS: dict[str, tuple[Any, str]] = {
@@ -149,8 +157,15 @@ PPO_RANGES: dict[str, Range] = {
 
 #: Keys of earlier releases, refused with the key that replaced them (``freamer_rl.config.loader``).
 BASE_RENAMED: dict[str, str] = {
-    **{f"ppo.{old}": f"optim.{new}" for old, new in
-       (("lr", "lr"), ("adam_eps", "eps"), ("max_grad_norm", "max_grad_norm"), ("lr_schedule", "lr_schedule"))},
+    **{
+        f"ppo.{old}": f"optim.{new}"
+        for old, new in (
+            ("lr", "lr"),
+            ("adam_eps", "eps"),
+            ("max_grad_norm", "max_grad_norm"),
+            ("lr_schedule", "lr_schedule"),
+        )
+    },
 }
 
 
@@ -211,15 +226,22 @@ def check_ppo_layout(cfg: Any) -> None:
     p = cfg.ppo
     envs_total = cfg.env.num_envs * cfg.collector.num_collectors
     if p.frames_per_batch % envs_total:
-        raise ConfigError(f"ppo.frames_per_batch ({p.frames_per_batch}) must be divisible by env.num_envs * "
-                          f"collector.num_collectors ({envs_total})")  # fmt: skip
+        raise ConfigError(
+            f"ppo.frames_per_batch ({p.frames_per_batch}) must be divisible by env.num_envs * "
+            f"collector.num_collectors ({envs_total})"
+        )
     steps = p.frames_per_batch // envs_total
     if steps % p.sequence_length:
-        raise ConfigError(f"ppo.sequence_length ({p.sequence_length}) must divide the steps per env per batch ({steps}"
-                          " = ppo.frames_per_batch / (env.num_envs * collector.num_collectors))")  # fmt: skip
+        raise ConfigError(
+            f"ppo.sequence_length ({p.sequence_length}) must divide the steps per env per batch ({steps}"
+            " = ppo.frames_per_batch / (env.num_envs * collector.num_collectors))"
+        )
     if p.frames_per_batch % p.minibatch_size:  # else an epoch draws short minibatches and repeats sequences
-        raise ConfigError(f"ppo.minibatch_size ({p.minibatch_size}) must divide ppo.frames_per_batch "
-                          f"({p.frames_per_batch})")  # fmt: skip
+        raise ConfigError(
+            f"ppo.minibatch_size ({p.minibatch_size}) must divide ppo.frames_per_batch ({p.frames_per_batch})"
+        )
     if p.minibatch_size % p.sequence_length or p.minibatch_size > p.frames_per_batch:
-        raise ConfigError(f"ppo.minibatch_size ({p.minibatch_size}) must be a multiple of ppo.sequence_length "
-                          f"({p.sequence_length}) and at most ppo.frames_per_batch ({p.frames_per_batch})")
+        raise ConfigError(
+            f"ppo.minibatch_size ({p.minibatch_size}) must be a multiple of ppo.sequence_length "
+            f"({p.sequence_length}) and at most ppo.frames_per_batch ({p.frames_per_batch})"
+        )

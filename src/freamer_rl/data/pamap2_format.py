@@ -18,11 +18,31 @@ from freamer_rl.errors import FreamerError
 
 #: every public name of the module (re-exported as a whole by :mod:`freamer_rl.data`)
 __all__ = [
-    "N_COLUMNS", "SAMPLE_RATE_HZ", "PROTOCOL_SUBJECTS", "IMU_SITES", "IMU_CHANNELS", "COLUMN_NAMES", "G",
-    "IMU_FEATURE_NAMES", "ACTIVITY_NAMES", "MAX_ACTIVITY_ID", "ACTIVITY_GROUP_NAMES", "ACTIVITY_GROUP_OF",
-    "ACTIVITY_MET", "HR_FEATURE_NAMES", "HR_ZONE_NAMES", "Pamap2FormatError", "Pamap2Recording", "HRFeatureParams",
-    "Pamap2Features", "hr_zone", "activity_name", "group_table", "met_table", "valid_activity_ids",
-]  # fmt: skip
+    "N_COLUMNS",
+    "SAMPLE_RATE_HZ",
+    "PROTOCOL_SUBJECTS",
+    "IMU_SITES",
+    "IMU_CHANNELS",
+    "COLUMN_NAMES",
+    "G",
+    "IMU_FEATURE_NAMES",
+    "ACTIVITY_NAMES",
+    "MAX_ACTIVITY_ID",
+    "ACTIVITY_GROUP_NAMES",
+    "ACTIVITY_GROUP_OF",
+    "ACTIVITY_MET",
+    "HR_FEATURE_NAMES",
+    "HR_ZONE_NAMES",
+    "Pamap2FormatError",
+    "Pamap2Recording",
+    "HRFeatureParams",
+    "Pamap2Features",
+    "hr_zone",
+    "activity_name",
+    "group_table",
+    "met_table",
+    "valid_activity_ids",
+]
 
 # ----------------------------------------------------------------------------------------------------------------------
 # format constants
@@ -33,12 +53,23 @@ PROTOCOL_SUBJECTS: tuple[int, ...] = tuple(range(101, 110))
 IMU_SITES: tuple[str, ...] = ("hand", "chest", "ankle")
 IMU_CHANNELS: tuple[str, ...] = (
     "temperature",
-    "acc16_x", "acc16_y", "acc16_z",
-    "acc6_x", "acc6_y", "acc6_z",
-    "gyro_x", "gyro_y", "gyro_z",
-    "mag_x", "mag_y", "mag_z",
-    "ori_w", "ori_x", "ori_y", "ori_z",
-)  # fmt: skip
+    "acc16_x",
+    "acc16_y",
+    "acc16_z",
+    "acc6_x",
+    "acc6_y",
+    "acc6_z",
+    "gyro_x",
+    "gyro_y",
+    "gyro_z",
+    "mag_x",
+    "mag_y",
+    "mag_z",
+    "ori_w",
+    "ori_x",
+    "ori_y",
+    "ori_z",
+)
 _SITE_FIRST_COLUMN = {"hand": 3, "chest": 20, "ankle": 37}  # 0-based column of each site's temperature
 COLUMN_NAMES: tuple[str, ...] = ("timestamp", "activity_id", "heart_rate") + tuple(
     f"{site}_{ch}" for site in IMU_SITES for ch in IMU_CHANNELS
@@ -87,22 +118,50 @@ ACTIVITY_GROUP_NAMES: tuple[str, ...] = (
     "transient_other",  # 7: activity 0 (transient periods between activities)
 )
 ACTIVITY_GROUP_OF: dict[int, int] = {
-    1: 0, 2: 0, 3: 0, 9: 0, 10: 0, 11: 0,
-    16: 1, 17: 1, 18: 1, 19: 1,
-    4: 2, 7: 2,
-    12: 3, 13: 3,
+    1: 0,
+    2: 0,
+    3: 0,
+    9: 0,
+    10: 0,
+    11: 0,
+    16: 1,
+    17: 1,
+    18: 1,
+    19: 1,
+    4: 2,
+    7: 2,
+    12: 3,
+    13: 3,
     5: 4,
     6: 5,
-    20: 6, 24: 6,
+    20: 6,
+    24: 6,
     0: 7,
-}  # fmt: skip
+}
 
 #: Nominal metabolic equivalents (MET) per activity (rounded values in the range of the Compendium of Physical
 #: Activities). Used for the intensity feature, the synthetic generator and the health env's heart-rate model.
 ACTIVITY_MET: dict[int, float] = {
-    0: 2.0, 1: 1.0, 2: 1.3, 3: 1.8, 4: 3.5, 5: 8.0, 6: 5.5, 7: 5.0, 9: 1.3, 10: 1.5, 11: 2.0,
-    12: 8.0, 13: 3.0, 16: 3.5, 17: 2.3, 18: 2.0, 19: 3.3, 20: 7.0, 24: 10.0,
-}  # fmt: skip
+    0: 2.0,
+    1: 1.0,
+    2: 1.3,
+    3: 1.8,
+    4: 3.5,
+    5: 8.0,
+    6: 5.5,
+    7: 5.0,
+    9: 1.3,
+    10: 1.5,
+    11: 2.0,
+    12: 8.0,
+    13: 3.0,
+    16: 3.5,
+    17: 2.3,
+    18: 2.0,
+    19: 3.3,
+    20: 7.0,
+    24: 10.0,
+}
 
 # lookup tables indexed by activity id (0..24); invalid ids map to the transient group / MET
 _VALID_ID = np.zeros(MAX_ACTIVITY_ID + 1, dtype=bool)
@@ -138,8 +197,9 @@ class Pamap2FormatError(FreamerError, ValueError):
     ``path``, ``line`` and ``column`` are also available as attributes (``None`` when not applicable).
     """
 
-    def __init__(self, message: str, *, path: str | Path | None = None, line: int | None = None,
-                 column: int | None = None) -> None:  # fmt: skip
+    def __init__(
+        self, message: str, *, path: str | Path | None = None, line: int | None = None, column: int | None = None
+    ) -> None:
         super().__init__(message)
         self.path = None if path is None else str(path)
         self.line = line

@@ -30,6 +30,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["hr_feature_sequence", "pamap2_features"]
 
+
 def _ffill_rows(x: np.ndarray, name: str) -> np.ndarray:
     """Forward-fill rows containing a NaN (back-fill before the first complete row). ``x``: ``[T]`` or ``[T, C]``."""
     valid = ~np.isnan(x) if x.ndim == 1 else ~np.isnan(x).any(axis=1)
@@ -44,8 +45,9 @@ def _ffill_rows(x: np.ndarray, name: str) -> np.ndarray:
     return x[idx]
 
 
-def hr_feature_sequence(hr: np.ndarray, group: np.ndarray, met: np.ndarray, dt: float, hr_rest: float,
-                         p: HRFeatureParams) -> np.ndarray:  # fmt: skip
+def hr_feature_sequence(
+    hr: np.ndarray, group: np.ndarray, met: np.ndarray, dt: float, hr_rest: float, p: HRFeatureParams
+) -> np.ndarray:
     """The 16 heart-rate features of a heart-rate series (see the table of :func:`pamap2_features`).
 
     Args:
@@ -203,8 +205,9 @@ def _windows(n_rows: int, rate_hz: float, dt_row: float) -> tuple[int, int, floa
     return w, n, eff_rate
 
 
-def _imu_features(recording: Pamap2Recording, ends: np.ndarray, n: int, w: int, imu_reduce: str,
-                  name: str) -> np.ndarray:  # fmt: skip
+def _imu_features(
+    recording: Pamap2Recording, ends: np.ndarray, n: int, w: int, imu_reduce: str, name: str
+) -> np.ndarray:
     """float32 ``[n, 36]``: per site the 12 feature channels, forward-filled, reduced per window and scaled."""
     sites = []
     for site in IMU_SITES:

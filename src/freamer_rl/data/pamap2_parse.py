@@ -186,10 +186,13 @@ def _value_error(path: Path, arr: np.ndarray, line0: int) -> Pamap2FormatError |
         (~np.isfinite(ts), 1, lambda r: f"timestamp must be a finite number, got {float(ts[r]):g}"),
         (~np.isfinite(act), 2, lambda r: f"activity id must be a finite integer, got {float(act[r]):g}"),
         (~act_ok, 2, lambda r: f"invalid activity id {act[r]:g} (valid ids: {_VALID_IDS_TEXT})"),
-        (~np.isnan(hr) & ~((hr > 0) & (hr <= 300)), 3,
-         lambda r: f"implausible heart rate {hr[r]:g} bpm (expected (0, 300] or NaN)"),
+        (
+            ~np.isnan(hr) & ~((hr > 0) & (hr <= 300)),
+            3,
+            lambda r: f"implausible heart rate {hr[r]:g} bpm (expected (0, 300] or NaN)",
+        ),
         (inf_rows, None, lambda r: "infinite value (expected a finite number or NaN)"),
-    )  # fmt: skip
+    )
     found = [(row, k) for k, (mask, _, _) in enumerate(checks) if (row := _first_row(mask)) is not None]
     if not found:
         return None
@@ -253,8 +256,12 @@ def _scan(path: Path, out: np.ndarray | None, validate: bool, block_bytes: int) 
     if st.rows == 0:
         raise _error(path, 1, f"empty file (expected rows of {_EXPECTED})")
     if st.n_back:
-        logger.warning("%s: timestamps decrease at %d places (first at line %d); the rows are kept in file order",
-                       path, st.n_back, st.first_back)  # fmt: skip
+        logger.warning(
+            "%s: timestamps decrease at %d places (first at line %d); the rows are kept in file order",
+            path,
+            st.n_back,
+            st.first_back,
+        )
     return st.rows
 
 
@@ -309,8 +316,9 @@ def _parse_dat(path: Path, block_bytes: int | None = None) -> np.ndarray:
     return out[:n]
 
 
-def _recording_from_array(arr: np.ndarray, *, subject: int | None, source: str | None,
-                          info: dict | None = None) -> Pamap2Recording:  # fmt: skip
+def _recording_from_array(
+    arr: np.ndarray, *, subject: int | None, source: str | None, info: dict | None = None
+) -> Pamap2Recording:
     imu = {}
     for site in IMU_SITES:
         c = _SITE_FIRST_COLUMN[site]

@@ -31,9 +31,21 @@ from freamer_rl.data.pamap2_format import (
 __all__ = ["synthetic_recording", "write_synthetic_pamap2"]
 
 _PROTOCOL_TIMELINE: tuple[tuple[int, float], ...] = (
-    (1, 180), (2, 180), (3, 180), (17, 180), (16, 180), (12, 60), (13, 60), (12, 60), (13, 60),
-    (4, 180), (7, 180), (6, 180), (5, 180), (24, 120),
-)  # fmt: skip
+    (1, 180),
+    (2, 180),
+    (3, 180),
+    (17, 180),
+    (16, 180),
+    (12, 60),
+    (13, 60),
+    (12, 60),
+    (13, 60),
+    (4, 180),
+    (7, 180),
+    (6, 180),
+    (5, 180),
+    (24, 120),
+)
 _TRANSIENT_S = 40.0
 _MIN_SEGMENT_S = 15.0
 _MIN_TRANSIENT_S = 4.0
@@ -161,8 +173,9 @@ def synthetic_recording(
     )
 
 
-def _activity_rows(segs: list[tuple[int, float]], t_rows: int,
-                   rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def _activity_rows(
+    segs: list[tuple[int, float]], t_rows: int, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """Per-row activity id int64 ``[T]`` and per-segment effort jitter float64 ``[T]`` (one draw per segment)."""
     bounds = np.round(np.cumsum([d for _, d in segs]) * SAMPLE_RATE_HZ).astype(np.int64)
     # rows past the last segment's end (rounding) stay in the last segment
@@ -173,8 +186,12 @@ def _activity_rows(segs: list[tuple[int, float]], t_rows: int,
     return activity, seg_jitter
 
 
-def _synthetic_heart_rate(activity: np.ndarray, seg_jitter: np.ndarray, physiology: tuple[float, float, float, float],
-                          rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def _synthetic_heart_rate(
+    activity: np.ndarray,
+    seg_jitter: np.ndarray,
+    physiology: tuple[float, float, float, float],
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
     """Measured heart rate ``[T]`` (integer bpm on ~9 rows in 100, NaN elsewhere) and the true fatigue ``[T]``.
 
     ``physiology`` = ``(hr_rest, gain, tau_hr, drift)``. The lag model is integrated at 10 Hz (a Python loop: 10x
@@ -202,8 +219,9 @@ def _synthetic_heart_rate(activity: np.ndarray, seg_jitter: np.ndarray, physiolo
     return heart_rate, fatigue
 
 
-def _integrate_hr(met10: np.ndarray, dt10: float, physiology: tuple[float, float, float, float],
-                  rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+def _integrate_hr(
+    met10: np.ndarray, dt10: float, physiology: tuple[float, float, float, float], rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
     """True heart rate and fatigue at 10 Hz: ``dHR/dt = (HR_ss - HR) / tau_hr``, fatigue as the ``fatigue`` feature."""
     hr_rest, gain, tau_hr, drift = physiology
     hr_max = HRFeatureParams().hr_max
@@ -246,8 +264,9 @@ def _movement_rows(activity: np.ndarray, seg_jitter: np.ndarray, amp_scale: np.n
     }
 
 
-def _synthetic_imus(activity: np.ndarray, seg_jitter: np.ndarray, amp_scale: np.ndarray, fatigue: np.ndarray,
-                    rng: np.random.Generator) -> dict[str, np.ndarray]:  # fmt: skip
+def _synthetic_imus(
+    activity: np.ndarray, seg_jitter: np.ndarray, amp_scale: np.ndarray, fatigue: np.ndarray, rng: np.random.Generator
+) -> dict[str, np.ndarray]:
     """``{"hand", "chest", "ankle"}`` -> float64 ``[T, 17]`` in :data:`IMU_CHANNELS` order."""
     t_rows = activity.shape[0]
     dt = 1.0 / SAMPLE_RATE_HZ
@@ -258,20 +277,27 @@ def _synthetic_imus(activity: np.ndarray, seg_jitter: np.ndarray, amp_scale: np.
     imu: dict[str, np.ndarray] = {}
     for s, site in enumerate(IMU_SITES):
         g = mv["gdir"][mv["post_k"], s] * G  # [T, 3]
-        imu[site] = _site_channels(s, g, mv["acc_amp"][:, s : s + 1], mv["gyro_amp"][:, s : s + 1], phase, heading,
-                                   fatigue, temp_drift, rng)  # fmt: skip
+        imu[site] = _site_channels(
+            s, g, mv["acc_amp"][:, s : s + 1], mv["gyro_amp"][:, s : s + 1], phase, heading, fatigue, temp_drift, rng
+        )
     return imu
 
 
-def _site_channels(s: int, g: np.ndarray, acc_amp: np.ndarray, gyro_amp: np.ndarray, phase: np.ndarray,
-                   heading: np.ndarray, fatigue: np.ndarray, temp_drift: np.ndarray,
-                   rng: np.random.Generator) -> np.ndarray:  # fmt: skip
+def _site_channels(
+    s: int,
+    g: np.ndarray,
+    acc_amp: np.ndarray,
+    gyro_amp: np.ndarray,
+    phase: np.ndarray,
+    heading: np.ndarray,
+    fatigue: np.ndarray,
+    temp_drift: np.ndarray,
+    rng: np.random.Generator,
+) -> np.ndarray:
     """One site's 17 channels ``[T, 17]``: temperature, acc16, acc6, gyro, magnetometer, orientation ``1 0 0 0``."""
     t_rows = phase.shape[0]
     c1, c2, c3, c4 = rng.uniform(0, 2 * np.pi, size=4)
-    wave = np.stack(
-        [np.sin(phase + s), 0.6 * np.sin(2 * phase + c1), 0.4 * np.sin(phase + c2)], axis=1
-    )  # [T, 3]
+    wave = np.stack([np.sin(phase + s), 0.6 * np.sin(2 * phase + c1), 0.4 * np.sin(phase + c2)], axis=1)  # [T, 3]
     move = acc_amp * wave + 0.25 * acc_amp * rng.normal(size=(t_rows, 3))
     acc_true = g + move
     acc16 = np.clip(acc_true + rng.normal(0.0, 0.05, size=(t_rows, 3)), -16 * G, 16 * G)

@@ -136,8 +136,9 @@ def run_chain(
         given = [*cfg.overrides, *stage.overrides, *stage_overrides, f"run.seed={cfg.seed}"]
         plans.append((stage, _stage_recipe(path, stage, i), root / stage.name, given, _finished(root / stage.name)))
     todo = [i for i, plan in enumerate(plans) if plan[4] is None]
-    progress = OverallProgress(f"chain {cfg.name}", [_stage_frames(plans[i][1], plans[i][3]) for i in todo],
-                               item="stages")  # fmt: skip
+    progress = OverallProgress(
+        f"chain {cfg.name}", [_stage_frames(plans[i][1], plans[i][3]) for i in todo], item="stages"
+    )
     rows: list[dict[str, Any]] = []
     total = 0
     try:
@@ -152,10 +153,18 @@ def run_chain(
             else:
                 logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
             total += int(summary["frames"])
-            rows.append({"stage": stage.name, "env": summary.get("env"), "frames": summary["frames"],
-                         "chain_frames": total, "episodes": summary.get("episodes"),
-                         "final_success_rate": summary.get("final_success_rate"),
-                         "frames_to_95": summary.get("frames_to_95"), "run_dir": str(run_dir)})  # fmt: skip
+            rows.append(
+                {
+                    "stage": stage.name,
+                    "env": summary.get("env"),
+                    "frames": summary["frames"],
+                    "chain_frames": total,
+                    "episodes": summary.get("episodes"),
+                    "final_success_rate": summary.get("final_success_rate"),
+                    "frames_to_95": summary.get("frames_to_95"),
+                    "run_dir": str(run_dir),
+                }
+            )
     finally:
         progress.close()
     _write_summary(root, cfg, rows)
@@ -176,12 +185,17 @@ def _write_summary(root: Path, cfg: ChainConfig, rows: list[dict[str, Any]]) -> 
     root.mkdir(parents=True, exist_ok=True)
     payload = {"chain": cfg.name, "seed": cfg.seed, "stages": rows}
     (root / "chain_summary.json").write_text(json.dumps(payload, indent=2))
-    lines = [f"# Chain {cfg.name} (seed {cfg.seed})", "",
-             "| stage | env | frames | frames in the chain | episodes | final success | frames to 95% |",
-             "|---|---|---:|---:|---:|---:|---:|"]  # fmt: skip
+    lines = [
+        f"# Chain {cfg.name} (seed {cfg.seed})",
+        "",
+        "| stage | env | frames | frames in the chain | episodes | final success | frames to 95% |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         success = "" if r["final_success_rate"] is None else f"{r['final_success_rate']:.3f}"
         to95 = "" if r["frames_to_95"] is None else f"{r['frames_to_95']:,}"
-        lines.append(f"| {r['stage']} | {r['env']} | {r['frames']:,} | {r['chain_frames']:,} | {r['episodes']} | "
-                     f"{success} | {to95} |")
+        lines.append(
+            f"| {r['stage']} | {r['env']} | {r['frames']:,} | {r['chain_frames']:,} | {r['episodes']} | "
+            f"{success} | {to95} |"
+        )
     (root / "chain_summary.md").write_text("\n".join(lines) + "\n")

@@ -25,6 +25,7 @@ def prepare_output_folder(folder: str | Path, field: str) -> Path:
     except OSError as err:
         reason = err.strerror or type(err).__name__
         where = f" ({err.filename})" if err.filename and str(err.filename) != str(folder) else ""
-        raise ConfigError(f"{field}: cannot create or write the folder {folder}: {reason}{where}; expected a "
-                          "writable folder") from None  # fmt: skip
+        raise ConfigError(
+            f"{field}: cannot create or write the folder {folder}: {reason}{where}; expected a writable folder"
+        ) from None
     return folder

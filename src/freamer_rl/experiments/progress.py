@@ -39,8 +39,13 @@ class OverallProgress:
         self.t0 = time.perf_counter()
         self._bar = None
         if _on_terminal():
-            self._bar = tqdm(total=self.total, desc=desc, unit="frames" if self.frames else item,
-                             unit_scale=self.frames, dynamic_ncols=True)  # fmt: skip
+            self._bar = tqdm(
+                total=self.total,
+                desc=desc,
+                unit="frames" if self.frames else item,
+                unit_scale=self.frames,
+                dynamic_ncols=True,
+            )
 
     def eta_s(self) -> float | None:
         """Seconds left at the rate so far; None before the first item finished."""
@@ -57,9 +62,17 @@ class OverallProgress:
             self._bar.set_postfix_str(note)
             return
         eta = self.eta_s()
-        logger.info("%s: %d/%d %s finished (%.0f%%%s) | ETA %s | %s", self.desc, self.finished, len(self.weights),
-                    self.item, 100.0 * self.done / self.total, " of the frames" if self.frames else "",
-                    "n/a" if eta is None else _duration(eta), note)  # fmt: skip
+        logger.info(
+            "%s: %d/%d %s finished (%.0f%%%s) | ETA %s | %s",
+            self.desc,
+            self.finished,
+            len(self.weights),
+            self.item,
+            100.0 * self.done / self.total,
+            " of the frames" if self.frames else "",
+            "n/a" if eta is None else _duration(eta),
+            note,
+        )
 
     def warn(self, message: str) -> None:
         """A warning that does not break the bar."""

@@ -29,8 +29,18 @@ from freamer_rl.run.rundir import write_rows_csv
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "DONE_NAME", "FAILED_NAME", "HEALTH_METRICS", "PLOT_METRICS", "RunRecord", "failed_line", "first_reaching", "mean_std",
-    "plot_bands", "read_run", "run_status", "write_report",
+    "DONE_NAME",
+    "FAILED_NAME",
+    "HEALTH_METRICS",
+    "PLOT_METRICS",
+    "RunRecord",
+    "failed_line",
+    "first_reaching",
+    "mean_std",
+    "plot_bands",
+    "read_run",
+    "run_status",
+    "write_report",
 ]
 
 DONE_NAME = "done.json"
@@ -84,9 +94,18 @@ def _as_float(v: Any) -> float:
         return math.nan
 
 
-def plot_bands(results: list[dict], path: Path, y_key: str, title: str, *, x_key: str = "frames",
-               target: float | None = None, ylabel: str | None = None, colors: dict | None = None,
-               order: list[str] | None = None) -> None:
+def plot_bands(
+    results: list[dict],
+    path: Path,
+    y_key: str,
+    title: str,
+    *,
+    x_key: str = "frames",
+    target: float | None = None,
+    ylabel: str | None = None,
+    colors: dict | None = None,
+    order: list[str] | None = None,
+) -> None:
     """Per method (``results``: dicts with ``method`` and ``rows``): the mean curve across seeds with a min-max band,
     the seeds' curves put on a common x grid (up to the shortest run). ``order``: the methods' order (default
     sorted); rows without ``y_key`` count as NaN."""
@@ -201,8 +220,14 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
     rows = _read_progress(rec.run_dir / "progress.csv")
     last = rows[-1] if rows else {}
     error = rec.error if rec.error or status != "failed" else failed_line(rec.run_dir)
-    out: dict[str, Any] = {"label": rec.label, "env": rec.env, "seed": rec.seed, "status": status,
-                           "frames": frames, "episodes": summary.get("episodes", last.get("episodes"))}
+    out: dict[str, Any] = {
+        "label": rec.label,
+        "env": rec.env,
+        "seed": rec.seed,
+        "status": status,
+        "frames": frames,
+        "episodes": summary.get("episodes", last.get("episodes")),
+    }
     for col, skey, pkey in FINAL_METRICS:
         out[col] = _final(summary, last, skey, pkey)
     for key in ("frames_to_95", "episodes_to_95"):
@@ -218,8 +243,23 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
 
 
 # -- tables --------------------------------------------------------------------------------------------------------
-RUN_FIELDS = ["label", "env", "seed", "status", "frames", "episodes", "success_rate", "return_mean", "frames_to_95",
-              "episodes_to_95", "crafter_score", "fps", "wall_time_s", "error", "run_dir"]
+RUN_FIELDS = [
+    "label",
+    "env",
+    "seed",
+    "status",
+    "frames",
+    "episodes",
+    "success_rate",
+    "return_mean",
+    "frames_to_95",
+    "episodes_to_95",
+    "crafter_score",
+    "fps",
+    "wall_time_s",
+    "error",
+    "run_dir",
+]
 
 
 def _spread(values: list[float]) -> tuple[float | None, float | None, float | None]:
@@ -246,13 +286,19 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
     out = []
     for (label, env), runs in _group(results).items():
         done = [r for r in runs if r["status"] == "done"]
-        row: dict[str, Any] = {"label": label, "env": env, "seeds_done": len(done), "seeds": len(runs),
-                               "done_seeds": " ".join(str(r["seed"]) for r in done),
-                               "failed": sum(r["status"] == "failed" for r in runs)}  # fmt: skip
+        row: dict[str, Any] = {
+            "label": label,
+            "env": env,
+            "seeds_done": len(done),
+            "seeds": len(runs),
+            "done_seeds": " ".join(str(r["seed"]) for r in done),
+            "failed": sum(r["status"] == "failed" for r in runs),
+        }
         for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps"):
             row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
-        row["crafter_score_per_seed"] = " / ".join("—" if _missing(r.get("crafter_score")) else
-                                                   f"{r['crafter_score']:.2f}" for r in done)  # fmt: skip
+        row["crafter_score_per_seed"] = " / ".join(
+            "—" if _missing(r.get("crafter_score")) else f"{r['crafter_score']:.2f}" for r in done
+        )
         for key in (*(k for k, _, _ in HEALTH_METRICS), "params_encoder"):
             vals = [float(r[key]) for r in done if not _missing(r.get(key))]
             row[f"{key}_mean"] = statistics.mean(vals) if vals else None
@@ -291,17 +337,30 @@ def health_markdown(rows: list[dict]) -> list[str]:
     if not rows:
         return []
     first = rows[0]
-    head = ["label", "seeds done", *(col for _, col, _ in HEALTH_METRICS), "params (encoder)",
-            f"reward vs {first['label']}"]  # fmt: skip
-    lines = ["", "## Health world model (paper Table 15)", "",
-             "Reward: real-env evaluation return per episode; Violations: steps with HR > 160 bpm per episode; MSE: "
-             "reconstruction MSE per feature (raw units, held-out episodes); Horizon: open-loop imagined steps before "
-             "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done.", "",
-             "| " + " | ".join(head) + " |", "|---|" + "---:|" * (len(head) - 1)]  # fmt: skip
+    head = [
+        "label",
+        "seeds done",
+        *(col for _, col, _ in HEALTH_METRICS),
+        "params (encoder)",
+        f"reward vs {first['label']}",
+    ]
+    lines = [
+        "",
+        "## Health world model (paper Table 15)",
+        "",
+        "Reward: real-env evaluation return per episode; Violations: steps with HR > 160 bpm per episode; MSE: "
+        "reconstruction MSE per feature (raw units, held-out episodes); Horizon: open-loop imagined steps before "
+        "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done.",
+        "",
+        "| " + " | ".join(head) + " |",
+        "|---|" + "---:|" * (len(head) - 1),
+    ]
     for r in rows:
         cells = [r["label"], str(r["seeds_done"])]
-        cells += [f"{r[f'{k}_mean']:.{d}f} +- {r[f'{k}_std']:.{d}f}" if r[f"{k}_mean"] is not None else ""
-                  for k, _, d in HEALTH_METRICS]  # fmt: skip
+        cells += [
+            f"{r[f'{k}_mean']:.{d}f} +- {r[f'{k}_std']:.{d}f}" if r[f"{k}_mean"] is not None else ""
+            for k, _, d in HEALTH_METRICS
+        ]
         params = r["params_encoder_mean"]
         cells.append("" if params is None else f"{params:,.0f}")
         delta = r["eval_return_mean_mean"] - first["eval_return_mean_mean"]
@@ -318,10 +377,18 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     head += ["Crafter score [per seed]"] if has_crafter else []
     head += ["episodes to 95% [per seed]", "frames to 95% [per seed]"] if has_success else []
     head += ["frames/s"]
-    note = ("Final values: mean (min–max) across the seeds done; to 95%: mean of the seeds that reached 95% success, "
-            "then each seed's value (— not reached).")
-    lines = [f"# Suite {name}", "", note, "",
-             "| " + " | ".join(head) + " |", "|" + "---|" * 2 + "---:|" * (len(head) - 2)]  # fmt: skip
+    note = (
+        "Final values: mean (min–max) across the seeds done; to 95%: mean of the seeds that reached 95% success, "
+        "then each seed's value (— not reached)."
+    )
+    lines = [
+        f"# Suite {name}",
+        "",
+        note,
+        "",
+        "| " + " | ".join(head) + " |",
+        "|" + "---|" * 2 + "---:|" * (len(head) - 2),
+    ]
     for r in rows:
         seeds = f"{r['seeds_done']}/{r['seeds']}" + (f" ({r['done_seeds']})" if r["done_seeds"] else "")
         cells = [r["label"], r["env"], seeds, _cell(r, "frames", 0)]
@@ -338,7 +405,9 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         lines += [f"- {r['label']} / {r['env']} / seed {r['seed']}: {r['error']}" for r in failed]
     pending = [r for r in results if r["status"] in ("partial", "new")]
     if pending:
-        items = [f"{r['label']} / {r['env']} / seed {r['seed']} ({r['status']}, {r['frames']:,} frames)" for r in pending]
+        items = [
+            f"{r['label']} / {r['env']} / seed {r['seed']} ({r['status']}, {r['frames']:,} frames)" for r in pending
+        ]
         lines += ["", f"Not finished: {'; '.join(items)}."]
     return "\n".join(lines) + "\n"
 
@@ -346,8 +415,17 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
 # -- the report ----------------------------------------------------------------------------------------------------
 def _curve_rows(results: list[dict]) -> list[dict]:
     keys = [k for k in CURVE_KEYS if any(k in row for r in results for row in r["rows"])]
-    return [{"label": r["label"], "env": r["env"], "seed": r["seed"], "frames": int(row["frames"]),
-             **{k: row.get(k) for k in keys}} for r in results for row in r["rows"]]  # fmt: skip
+    return [
+        {
+            "label": r["label"],
+            "env": r["env"],
+            "seed": r["seed"],
+            "frames": int(row["frames"]),
+            **{k: row.get(k) for k in keys},
+        }
+        for r in results
+        for row in r["rows"]
+    ]
 
 
 def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
@@ -360,8 +438,14 @@ def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
                 continue
             path = output / f"curve_{env_dir}_{metric}.png"
             target = 0.95 if metric == "success_rate" else None
-            plot_bands(runs, path, metric, f"{env}: {metric} (mean, min-max across seeds)", target=target,
-                       order=[lb for lb in labels if any(run["method"] == lb for run in runs)])
+            plot_bands(
+                runs,
+                path,
+                metric,
+                f"{env}: {metric} (mean, min-max across seeds)",
+                target=target,
+                order=[lb for lb in labels if any(run["method"] == lb for run in runs)],
+            )
             written.append(path)
     return written
 

@@ -39,8 +39,14 @@ def _as_arrays(scores: Scores) -> dict[str, np.ndarray]:
     return out
 
 
-def stratified_bootstrap_ci(scores: Scores, statistic: Callable[[np.ndarray], float], *, reps: int = 2000,
-                            confidence: float = 0.95, seed: int = 0) -> tuple[float, float, float]:
+def stratified_bootstrap_ci(
+    scores: Scores,
+    statistic: Callable[[np.ndarray], float],
+    *,
+    reps: int = 2000,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float, float]:
     """``(statistic of all scores, low, high)``: the percentile interval of ``statistic`` over ``reps`` replicates,
     each resampling every task's seeds with replacement (stratified)."""
     arrays = _as_arrays(scores)
@@ -66,8 +72,9 @@ def _prob_greater(x: np.ndarray, y: np.ndarray) -> float:
     return float(((diff > 0) + 0.5 * (diff == 0)).mean())
 
 
-def probability_of_improvement(a: Scores, b: Scores, *, reps: int = 2000, confidence: float = 0.95,
-                               seed: int = 0) -> tuple[float, float, float]:
+def probability_of_improvement(
+    a: Scores, b: Scores, *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float, float]:
     """``(P(A > B), low, high)``: the probability that a run of A scores higher than a run of B on a task, averaged
     over the tasks both have, with a stratified-bootstrap interval (both arms' seeds resampled per task). For
     "lower is better" scores (frames to 95%), pass them negated. "A ahead of B" needs ``low > 0.5``."""
@@ -79,9 +86,15 @@ def probability_of_improvement(a: Scores, b: Scores, *, reps: int = 2000, confid
     point = float(np.mean([_prob_greater(a_arr[t], b_arr[t]) for t in tasks]))
     values = np.empty(reps)
     for r in range(reps):
-        values[r] = np.mean([_prob_greater(a_arr[t][rng.integers(0, a_arr[t].size, a_arr[t].size)],
-                                           b_arr[t][rng.integers(0, b_arr[t].size, b_arr[t].size)])
-                             for t in tasks])  # fmt: skip
+        values[r] = np.mean(
+            [
+                _prob_greater(
+                    a_arr[t][rng.integers(0, a_arr[t].size, a_arr[t].size)],
+                    b_arr[t][rng.integers(0, b_arr[t].size, b_arr[t].size)],
+                )
+                for t in tasks
+            ]
+        )
     tail = 100 * (1 - confidence) / 2
     low, high = np.percentile(values, [tail, 100 - tail])
     return point, float(low), float(high)

@@ -159,8 +159,7 @@ def _quiet_override(cfg: Any) -> list[str]:
     return []
 
 
-def _plan_run(suite: SuiteConfig, entry: SuiteEntry, recipe: Path, env: str | None, seed: int,
-              root: Path) -> SuiteRun:
+def _plan_run(suite: SuiteConfig, entry: SuiteEntry, recipe: Path, env: str | None, seed: int, root: Path) -> SuiteRun:
     given = [f"env.id={env}"] if env else []
     given += [f"run.total_frames={suite.total_frames}"] if suite.total_frames else []
     given += [*suite.overrides, *entry.overrides, f"run.seed={seed}"]
@@ -180,8 +179,17 @@ def _plan_run(suite: SuiteConfig, entry: SuiteEntry, recipe: Path, env: str | No
         env = env if isinstance(env, str) and not run_name_problem(env_folder(env)) else "default"
     run_dir = root / "runs" / entry.label / env_folder(env) / f"seed{seed}"
     target = getattr(getattr(cfg, "run", None), "total_frames", None)
-    return SuiteRun(label=entry.label, env=env, env_dir=env_folder(env), seed=seed, run_dir=run_dir,
-                    target_frames=target, error=error, recipe=recipe, overrides=given + _quiet_override(cfg))
+    return SuiteRun(
+        label=entry.label,
+        env=env,
+        env_dir=env_folder(env),
+        seed=seed,
+        run_dir=run_dir,
+        target_frames=target,
+        error=error,
+        recipe=recipe,
+        overrides=given + _quiet_override(cfg),
+    )
 
 
 def plan_suite(path: str | Path, output: str | Path | None = None) -> tuple[SuiteConfig, Path, list[SuiteRun]]:
@@ -204,8 +212,18 @@ def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
     for run in runs:
         status, frames = ("failed", 0) if run.error else run_status(run.run_dir, run.target_frames)
         error = run.error or (failed_line(run.run_dir) if status == "failed" else None)
-        rows.append({"label": run.label, "env": run.env, "seed": run.seed, "status": status, "frames": frames,
-                     "target_frames": run.target_frames, "run_dir": str(run.run_dir), "error": error})
+        rows.append(
+            {
+                "label": run.label,
+                "env": run.env,
+                "seed": run.seed,
+                "status": status,
+                "frames": frames,
+                "target_frames": run.target_frames,
+                "run_dir": str(run.run_dir),
+                "error": error,
+            }
+        )
     return rows
 
 
@@ -245,8 +263,9 @@ def _error_line(err: BaseException) -> str:
 
 def _train_run(job: dict[str, Any]) -> dict[str, Any]:
     """Worker: train one run through the trainer registry (resuming), then write ``done.json`` or ``failed.txt``."""
-    logging.basicConfig(force=True, level=job["log_level"],
-                        format=f"%(asctime)s %(levelname)s [{job['tag']}] %(name)s: %(message)s")  # fmt: skip
+    logging.basicConfig(
+        force=True, level=job["log_level"], format=f"%(asctime)s %(levelname)s [{job['tag']}] %(name)s: %(message)s"
+    )
     run_dir = Path(job["run_dir"])
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / FAILED_NAME).unlink(missing_ok=True)
@@ -260,8 +279,11 @@ def _train_run(job: dict[str, Any]) -> dict[str, Any]:
         error = _error_line(err)
         atomic_write_text(run_dir / FAILED_NAME, error + "\n")
         return {"ok": False, "error": error, "seconds": time.perf_counter() - t0}
-    done = {"total_frames": job["target_frames"], "frames": summary.get("frames"),
-            "finished": time.strftime("%Y-%m-%dT%H:%M:%S")}  # fmt: skip
+    done = {
+        "total_frames": job["target_frames"],
+        "frames": summary.get("frames"),
+        "finished": time.strftime("%Y-%m-%dT%H:%M:%S"),
+    }
     atomic_write_text(run_dir / DONE_NAME, json.dumps(done) + "\n")
     return {"ok": True, "summary": json.loads(json.dumps(summary, default=str)), "seconds": time.perf_counter() - t0}
 
@@ -285,8 +307,9 @@ def _finished_note(run: SuiteRun, out: dict[str, Any]) -> str:
         return f"{_tag(run)} FAILED: {out['error']}"
     s = out["summary"]
     success = s.get("final_success_rate")
-    return (f"{_tag(run)} done in {out['seconds']:.0f} s: {s.get('frames', 0):,} frames"
-            + ("" if success is None else f", success {success:.3f}"))  # fmt: skip
+    return f"{_tag(run)} done in {out['seconds']:.0f} s: {s.get('frames', 0):,} frames" + (
+        "" if success is None else f", success {success:.3f}"
+    )
 
 
 def _execute(suite: str, todo: list[SuiteRun], jobs: int, remaining: list[int | None]) -> list[SuiteRun]:
@@ -295,13 +318,28 @@ def _execute(suite: str, todo: list[SuiteRun], jobs: int, remaining: list[int | 
     level = logging.getLogger("freamer_rl").getEffectiveLevel()
     finished: list[SuiteRun] = []
     token = catch_sigterm()
-    pool = ProcessPoolExecutor(max_workers=max(1, min(jobs, len(todo))), mp_context=mp.get_context("spawn"),
-                               initializer=_init_worker, initargs=(os.getpid(),))  # fmt: skip
+    pool = ProcessPoolExecutor(
+        max_workers=max(1, min(jobs, len(todo))),
+        mp_context=mp.get_context("spawn"),
+        initializer=_init_worker,
+        initargs=(os.getpid(),),
+    )
     progress = OverallProgress(f"suite {suite}", remaining, item="runs")
     try:
-        futures = {pool.submit(_train_run, {"recipe": str(r.recipe), "overrides": r.overrides, "tag": _tag(r),
-                                            "run_dir": str(r.run_dir), "target_frames": r.target_frames,
-                                            "log_level": level}): i for i, r in enumerate(todo)}  # fmt: skip
+        futures = {
+            pool.submit(
+                _train_run,
+                {
+                    "recipe": str(r.recipe),
+                    "overrides": r.overrides,
+                    "tag": _tag(r),
+                    "run_dir": str(r.run_dir),
+                    "target_frames": r.target_frames,
+                    "log_level": level,
+                },
+            ): i
+            for i, r in enumerate(todo)
+        }
         for future in as_completed(futures):
             index = futures[future]
             run = todo[index]
@@ -332,8 +370,10 @@ def _lock_results(root: Path, field: str) -> RunDirLock:
     except FreamerError as err:
         found = re.search(r"\((pid .*|holder unknown.*)\); wait", str(err))
         holder = found.group(1) if found else str(err)
-        raise FreamerError(f"{field}: the results folder {root} is in use by another suite ({holder}); wait for it "
-                           "to finish or give another --output") from None  # fmt: skip
+        raise FreamerError(
+            f"{field}: the results folder {root} is in use by another suite ({holder}); wait for it "
+            "to finish or give another --output"
+        ) from None
 
 
 def _train_missing(suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: int) -> list[SuiteRun]:
@@ -341,20 +381,29 @@ def _train_missing(suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: i
     states = describe(runs)
     pending = [(r, s) for r, s in zip(runs, states) if s["status"] != "done" and not r.error]
     counts = {k: sum(s["status"] == k for s in states) for k in ("done", "partial", "new", "failed")}
-    logger.info("suite %s: %d runs (%s) -> %s; training %d, %d at a time", suite.name, len(runs),
-                ", ".join(f"{v} {k}" for k, v in counts.items() if v), root, len(pending), jobs)  # fmt: skip
+    logger.info(
+        "suite %s: %d runs (%s) -> %s; training %d, %d at a time",
+        suite.name,
+        len(runs),
+        ", ".join(f"{v} {k}" for k, v in counts.items() if v),
+        root,
+        len(pending),
+        jobs,
+    )
     for run in runs:
         if run.error:
             logger.warning("suite %s: %s cannot start: %s", suite.name, _tag(run), run.error)
     if not pending:
         return []
-    remaining = [None if r.target_frames is None else max(r.target_frames - int(s["frames"] or 0), 1)
-                 for r, s in pending]  # fmt: skip
+    remaining = [
+        None if r.target_frames is None else max(r.target_frames - int(s["frames"] or 0), 1) for r, s in pending
+    ]
     return _execute(suite.name, [r for r, _ in pending], jobs, remaining)
 
 
-def run_suite(path: str | Path, *, jobs: int = 1, output: str | Path | None = None,
-              report_only: bool = False) -> dict[str, Any]:
+def run_suite(
+    path: str | Path, *, jobs: int = 1, output: str | Path | None = None, report_only: bool = False
+) -> dict[str, Any]:
     """Train every run not yet done (``report_only``: none), then write the report.
 
     Returns ``{"output", "runs"`` (runs.csv rows), ``"trained"`` (tags of the runs trained to the end by this
@@ -368,5 +417,9 @@ def run_suite(path: str | Path, *, jobs: int = 1, output: str | Path | None = No
         trained = [] if report_only else _train_missing(suite, root, runs, jobs)
         results = write_report(root, suite.name, list(runs))
     rows = [{k: v for k, v in r.items() if k != "rows"} for r in results]
-    return {"output": root, "runs": rows, "trained": [_tag(r) for r in trained],
-            "failed": [f"{r['label']}/{r['env']}/seed{r['seed']}" for r in rows if r["status"] == "failed"]}
+    return {
+        "output": root,
+        "runs": rows,
+        "trained": [_tag(r) for r in trained],
+        "failed": [f"{r['label']}/{r['env']}/seed{r['seed']}" for r in rows if r["status"] == "failed"],
+    }

@@ -15,12 +15,12 @@ The real env is built through the ``freamer_rl.envs`` entry point ``health`` (th
 """
 
 from freamer_rl.health import encoders, reference
-from freamer_rl.health.encoders import *  # noqa: F403
 from freamer_rl.health.agent import HealthAgent, HealthPolicy, build_agent, load_agent
 from freamer_rl.health.anomaly_report import anomaly_report
 from freamer_rl.health.config import HealthConfig, health_config_from_dict, health_config_to_dict, load_health_config
-from freamer_rl.health.trainer import run_health
+from freamer_rl.health.encoders import *  # noqa: F403
 from freamer_rl.health.reference import *  # noqa: F403
+from freamer_rl.health.trainer import run_health
 
 #: submodule constants left out of ``__all__`` (``IMU_SITES`` would clash with :data:`freamer_rl.data.IMU_SITES`)
 _NOT_REEXPORTED = frozenset({"IMU_DIM", "HR_DIM", "IMU_SITES", "IMU_CHANNELS", "ACTION_NAMES"})

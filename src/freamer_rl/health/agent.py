@@ -21,18 +21,21 @@ from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.transforms import TensorDictPrimer
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
-from freamer_rl.run import env_registry
-from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint, save_checkpoint
-from freamer_rl.run.params import parameter_rows
-from freamer_rl.errors import ConfigError
-from freamer_rl.errors import CheckpointError
+from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.health.config import (
-    NUM_ACTIONS, OBS_KEYS, HealthConfig, HealthEncoderConfig, health_config_from_dict,
+    NUM_ACTIONS,
+    OBS_KEYS,
+    HealthConfig,
+    HealthEncoderConfig,
+    health_config_from_dict,
     health_config_to_dict,
 )
 from freamer_rl.health.config import explore_probs as _explore_probs
 from freamer_rl.health.encoders import HealthEncoder, make_health_encoder
 from freamer_rl.layers.tdmodule import KeyedModule
+from freamer_rl.run import env_registry
+from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint, save_checkpoint
+from freamer_rl.run.params import parameter_rows
 from freamer_rl.world_model.functional import gaussian_kl
 from freamer_rl.world_model.rssm import WorldModel
 
@@ -75,19 +78,25 @@ def env_options(cfg: HealthConfig) -> dict[str, Any]:
 
 
 def make_health_env(
-    cfg: HealthConfig, *, num_envs: int | None = None, seed: int | None = None, primer: TensorDictPrimer | None = None,
+    cfg: HealthConfig,
+    *,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    primer: TensorDictPrimer | None = None,
     **overrides: Any,
-) -> EnvBase:  # fmt: skip
+) -> EnvBase:
     """The real env through the ``freamer_rl.envs`` registry (``env.adapter``, default ``health``), batch
     ``[num_envs]``, wrapped with ``InitTracker`` (+ ``primer``, the policy's recurrent state). ``overrides`` replace
     adapter options (e.g. ``episode_length``)."""
     options = {**env_options(cfg), **overrides}
-    base = env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed,
-                                 batch_size=num_envs or cfg.env.num_envs, **options)  # fmt: skip
+    base = env_registry.make_env(
+        cfg.env.adapter, cfg.env.id, seed=seed, batch_size=num_envs or cfg.env.num_envs, **options
+    )
     transforms = [InitTracker()]
     if primer is not None:
         transforms.append(primer)
     return TransformedEnv(base, Compose(*transforms))
+
 
 @functools.lru_cache(maxsize=16)
 def _spec_dims(adapter: str, env_id: str, options: tuple) -> tuple[dict[str, int], int]:
@@ -99,8 +108,9 @@ def _spec_dims(adapter: str, env_id: str, options: tuple) -> tuple[dict[str, int
             raise ConfigError(f"env.id {env_id!r}: observation spec lacks {missing} (has {sorted(obs.keys())})")
         dims = {k: int(obs[k].shape[-1]) for k in OBS_KEYS}
         if not isinstance(env.action_spec, Categorical):
-            raise ConfigError(f"env.id {env_id!r}: expected a Categorical action spec, got "
-                              f"{type(env.action_spec).__name__}")  # fmt: skip
+            raise ConfigError(
+                f"env.id {env_id!r}: expected a Categorical action spec, got {type(env.action_spec).__name__}"
+            )
         return dims, int(env.action_spec.n)
     finally:
         env.close()
@@ -111,8 +121,10 @@ def env_dims(cfg: HealthConfig) -> tuple[dict[str, int], int]:
     options = tuple(sorted((k, tuple(v) if isinstance(v, list) else v) for k, v in env_options(cfg).items()))
     dims, n_actions = _spec_dims(cfg.env.adapter, cfg.env.id, options)
     if n_actions != NUM_ACTIONS:
-        raise ConfigError(f"env.id {cfg.env.id!r}: {n_actions} actions, the health schema (collect.explore_probs, "
-                          f"action names) expects {NUM_ACTIONS}")  # fmt: skip
+        raise ConfigError(
+            f"env.id {cfg.env.id!r}: {n_actions} actions, the health schema (collect.explore_probs, "
+            f"action names) expects {NUM_ACTIONS}"
+        )
     return dims, n_actions
 
 
@@ -128,10 +140,16 @@ def _encoder_kwargs(cfg: HealthEncoderConfig) -> dict[str, Any]:
     if cfg.kind == "slotattn":
         return common
     return {
-        **common, "fm_hidden": cfg.fm_hidden, "fm_steps": cfg.fm_steps, "gate_init": dict(cfg.gate_init),
-        "fm_noise_std": cfg.fm_noise_std, "fno_modes": cfg.fno_modes, "fno_residual_scale": cfg.fno_residual_scale,
-        "memory_slots": cfg.memory_slots, "memory_width": cfg.memory_width,
-    }  # fmt: skip
+        **common,
+        "fm_hidden": cfg.fm_hidden,
+        "fm_steps": cfg.fm_steps,
+        "gate_init": dict(cfg.gate_init),
+        "fm_noise_std": cfg.fm_noise_std,
+        "fno_modes": cfg.fno_modes,
+        "fno_residual_scale": cfg.fno_residual_scale,
+        "memory_slots": cfg.memory_slots,
+        "memory_width": cfg.memory_width,
+    }
 
 
 def build_world_model(cfg: HealthConfig) -> WorldModel:
@@ -139,24 +157,41 @@ def build_world_model(cfg: HealthConfig) -> WorldModel:
     obs_dims, n_actions = env_dims(cfg)
     enc = make_health_encoder(cfg.encoder.kind, cfg.encoder.embed_dim, **_encoder_kwargs(cfg.encoder))
     w = cfg.world_model
-    return WorldModel(obs_dims, n_actions, encoder=enc, embed_dim=cfg.encoder.embed_dim, deter_dim=w.deter_dim,
-                      stoch_dim=w.stoch_dim, hidden=w.hidden, beta=w.beta, free_nats=w.free_nats,
-                      kl_balance=w.kl_balance, recon_norm=w.recon_norm, reward_scale=w.reward_scale)  # fmt: skip
+    return WorldModel(
+        obs_dims,
+        n_actions,
+        encoder=enc,
+        embed_dim=cfg.encoder.embed_dim,
+        deter_dim=w.deter_dim,
+        stoch_dim=w.stoch_dim,
+        hidden=w.hidden,
+        beta=w.beta,
+        free_nats=w.free_nats,
+        kl_balance=w.kl_balance,
+        recon_norm=w.recon_norm,
+        reward_scale=w.reward_scale,
+    )
 
 
-def build_actor_value(latent_dim: int, hidden: int, num_actions: int = NUM_ACTIONS
-                      ) -> tuple[ProbabilisticActor, ValueOperator]:  # fmt: skip
+def build_actor_value(
+    latent_dim: int, hidden: int, num_actions: int = NUM_ACTIONS
+) -> tuple[ProbabilisticActor, ValueOperator]:
     """Categorical actor (``num_actions`` logits) and value MLPs on ``"latent"`` ``[*B, D + S]``."""
     actor = ProbabilisticActor(
-        KeyedModule(MLP(in_features=latent_dim, out_features=num_actions, num_cells=[hidden, hidden],
-                             activation_class=nn.SiLU), in_keys=["latent"], out_keys=["logits"]),  # fmt: skip
+        KeyedModule(
+            MLP(in_features=latent_dim, out_features=num_actions, num_cells=[hidden, hidden], activation_class=nn.SiLU),
+            in_keys=["latent"],
+            out_keys=["logits"],
+        ),
         in_keys=["logits"],
         distribution_class=torch.distributions.Categorical,
         return_log_prob=True,
         spec=Categorical(num_actions),
     )
-    value = ValueOperator(MLP(in_features=latent_dim, out_features=1, num_cells=[hidden, hidden],
-                              activation_class=nn.SiLU), in_keys=["latent"])  # fmt: skip
+    value = ValueOperator(
+        MLP(in_features=latent_dim, out_features=1, num_cells=[hidden, hidden], activation_class=nn.SiLU),
+        in_keys=["latent"],
+    )
     return actor, value
 
 
@@ -180,16 +215,25 @@ class HealthPolicy(TensorDictModuleBase):
     ``no_grad``.
     """
 
-    def __init__(self, world_model: WorldModel, actor: TensorDictModuleBase, *, sample_latent: bool = True,
-                 random_actions: bool = False, random_action_prob: float = 0.0,
-                 explore_probs: list[float] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        world_model: WorldModel,
+        actor: TensorDictModuleBase,
+        *,
+        sample_latent: bool = True,
+        random_actions: bool = False,
+        random_action_prob: float = 0.0,
+        explore_probs: list[float] | None = None,
+    ) -> None:
         super().__init__()
         if not 0.0 <= random_action_prob <= 1.0:
             raise ValueError(f"random_action_prob: expected a probability in [0, 1], got {random_action_prob}")
         enc = world_model.encoder
         if not isinstance(enc, HealthEncoder):
-            raise TypeError(f"HealthPolicy: the world model's encoder {type(enc).__name__} does not implement the "
-                            "HealthEncoder protocol (freamer_rl.health.encoders)")  # fmt: skip
+            raise TypeError(
+                f"HealthPolicy: the world model's encoder {type(enc).__name__} does not implement the "
+                "HealthEncoder protocol (freamer_rl.health.encoders)"
+            )
         self.explore_probs = _explore_probs(explore_probs, world_model.action_dim, "explore_probs")
         self.world_model = world_model
         self.actor = actor
@@ -198,12 +242,21 @@ class HealthPolicy(TensorDictModuleBase):
         self.random_action_prob = random_action_prob
         self._enc_shapes = dict(enc.state_shapes())
         self.obs_keys = list(world_model.obs_dims)
-        self.state_keys = {"deter": (_STATE, "deter"), "stoch": (_STATE, "stoch"),
-                           "prev_action": (_STATE, "prev_action")}  # fmt: skip
+        self.state_keys = {
+            "deter": (_STATE, "deter"),
+            "stoch": (_STATE, "stoch"),
+            "prev_action": (_STATE, "prev_action"),
+        }
         self.enc_keys = {n: (_STATE, "enc", n) for n in self._enc_shapes}
         self.in_keys = [*self.obs_keys, "is_init", *self.state_keys.values(), *self.enc_keys.values()]
-        self.out_keys = ["latent", "kl", "logits", "action", "action_log_prob",
-                         *[("next", *k) for k in (*self.state_keys.values(), *self.enc_keys.values())]]  # fmt: skip
+        self.out_keys = [
+            "latent",
+            "kl",
+            "logits",
+            "action",
+            "action_log_prob",
+            *[("next", *k) for k in (*self.state_keys.values(), *self.enc_keys.values())],
+        ]
 
     def make_tensordict_primer(self) -> TensorDictPrimer:
         wm = self.world_model
@@ -220,8 +273,11 @@ class HealthPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         wm = self.world_model
         bs = tensordict.batch_size
-        missing = [k for k in (*self.state_keys.values(), *self.enc_keys.values())
-                   if k not in tensordict.keys(include_nested=True)]  # fmt: skip
+        missing = [
+            k
+            for k in (*self.state_keys.values(), *self.enc_keys.values())
+            if k not in tensordict.keys(include_nested=True)
+        ]
         if missing:
             raise KeyError(
                 f"HealthPolicy: recurrent state {missing} missing from the tensordict; declare it on the env with "
@@ -323,9 +379,11 @@ def parameter_table(agent: HealthAgent) -> list[dict]:
     """Rows ``{"component", "trainable", "frozen"}`` (encoder, RSSM + heads + decoder, actor, value) and ``Total``
     (:func:`freamer_rl.run.params.parameter_rows`, the format of ``format_parameter_table``)."""
     wm = agent.world_model
-    return parameter_rows({
-        f"encoder ({agent.cfg.encoder.kind})": wm.encoder,
-        "RSSM, decoder, reward/continue heads": wm,  # the encoder's parameters are already counted above
-        "actor": agent.actor,
-        "value": agent.value,
-    })  # fmt: skip
+    return parameter_rows(
+        {
+            f"encoder ({agent.cfg.encoder.kind})": wm.encoder,
+            "RSSM, decoder, reward/continue heads": wm,  # the encoder's parameters are already counted above
+            "actor": agent.actor,
+            "value": agent.value,
+        }
+    )

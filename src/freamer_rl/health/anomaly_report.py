@@ -9,11 +9,11 @@ from typing import Any
 
 import numpy as np
 import torch
-from tqdm.auto import tqdm
 import torch.nn.functional as F
+from tqdm.auto import tqdm
 
-from freamer_rl.run import env_registry
 from freamer_rl.health.agent import HealthAgent, env_options, load_agent, logits_net
+from freamer_rl.run import env_registry
 from freamer_rl.world_model.anomaly import DANGER_HR, DEFAULT_ACTION_NAMES, detect_anomalies, plot_anomaly_timeline
 from freamer_rl.world_model.functional import gaussian_kl
 
@@ -22,9 +22,14 @@ __all__ = ["record_episode", "anomaly_report"]
 
 @torch.no_grad()
 def record_episode(
-    agent: HealthAgent, steps: int, *, seed: int = 0, deterministic: bool = True, progress_bar: bool = False,
+    agent: HealthAgent,
+    steps: int,
+    *,
+    seed: int = 0,
+    deterministic: bool = True,
+    progress_bar: bool = False,
     episode_length: int | None = None,
-) -> dict[str, np.ndarray]:  # fmt: skip
+) -> dict[str, np.ndarray]:
     """Run the trained policy for ``steps`` steps in a one-env copy of the real env and record the timeline.
 
     The same computation as :class:`HealthPolicy` (posterior means fed forward, the mode of the policy when
@@ -43,13 +48,18 @@ def record_episode(
     enc = wm.encoder
     net = logits_net(agent.actor)
     length = episode_length or max(steps, cfg.env.episode_length)
-    env = env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, batch_size=1,
-                                **{**env_options(cfg), "episode_length": length})  # fmt: skip
+    env = env_registry.make_env(
+        cfg.env.adapter, cfg.env.id, seed=seed, batch_size=1, **{**env_options(cfg), "episode_length": length}
+    )
     rec = {
-        "heart_rate": np.empty(steps, np.float32), "activity": np.empty(steps, np.int64),
-        "action": np.empty(steps, np.int64), "kl": np.empty(steps, np.float32), "reward": np.empty(steps, np.float32),
-        "done": np.empty(steps, bool), "is_first": np.empty(steps, bool),
-    }  # fmt: skip
+        "heart_rate": np.empty(steps, np.float32),
+        "activity": np.empty(steps, np.int64),
+        "action": np.empty(steps, np.int64),
+        "kl": np.empty(steps, np.float32),
+        "reward": np.empty(steps, np.float32),
+        "done": np.empty(steps, bool),
+        "is_first": np.empty(steps, bool),
+    }
     h, z = wm.rssm.initial_state((1,))
     prev = torch.zeros(1, wm.action_dim)
     state = enc.initial_state((1,))
@@ -118,10 +128,16 @@ def anomaly_report(
     time_h = np.arange(steps, dtype=np.float64) / cfg.env.rate_hz / 3600.0
     hr, act, kl = rec["heart_rate"], rec["action"], rec["kl"]
     png = plot_anomaly_timeline(
-        hr, act, kl, flags, run_dir / "anomaly_timeline.png", time_hours=time_h, threshold=thr,
+        hr,
+        act,
+        kl,
+        flags,
+        run_dir / "anomaly_timeline.png",
+        time_hours=time_h,
+        threshold=thr,
         title=f"{hours:g}-hour scenario, {cfg.encoder.kind} encoder: heart rate, decisions, KL anomalies "
-              f"(KL > mean + {k_sigma:g} std)",
-    )  # fmt: skip
+        f"(KL > mean + {k_sigma:g} std)",
+    )
     fl = flags.numpy()
     np.savez_compressed(run_dir / "anomaly_episode.npz", **rec, flag=fl, threshold=thr.numpy(), time_h=time_h)
     summary = {

@@ -18,10 +18,10 @@ import sys
 from pathlib import Path
 
 from freamer_rl.config.loader import load_config
+from freamer_rl.errors import FreamerError
 from freamer_rl.health.anomaly_report import anomaly_report
 from freamer_rl.health.config import HealthConfig
 from freamer_rl.trainers.health import train as train_health  # the registry entry (its STRUCTURAL)
-from freamer_rl.errors import FreamerError
 
 
 def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
@@ -31,8 +31,11 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
     p_train.add_argument("recipe", nargs="?", default=None, help="YAML recipe (recipes/health/health_*.yaml)")
     p_train.add_argument("overrides", nargs="*", help="dotted overrides, e.g. run.seed=1 collect.iterations=5")
     p_train.add_argument("--run-dir", default=None, help="output directory (default runs/health-<kind>-s<seed>-<time>)")
-    p_train.add_argument("--no-resume", action="store_true",
-                         help="start from scratch; refused when the run directory already holds checkpoints")
+    p_train.add_argument(
+        "--no-resume",
+        action="store_true",
+        help="start from scratch; refused when the run directory already holds checkpoints",
+    )
     p_an = sub.add_parser("anomaly", help="record a long episode, flag KL anomalies, draw the Fig. 4 timeline")
     p_an.add_argument("checkpoint", help="run directory or its checkpoint.pt")
     p_an.add_argument("--hours", type=float, default=48.0)

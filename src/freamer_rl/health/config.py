@@ -14,7 +14,15 @@ from typing import ClassVar
 
 import torch
 
-from freamer_rl.config.checks import BATCH_LIMIT, LAYERS_LIMIT, WIDTH_LIMIT, size_range, check_logging, check_numbers, run_name_problem
+from freamer_rl.config.checks import (
+    BATCH_LIMIT,
+    LAYERS_LIMIT,
+    WIDTH_LIMIT,
+    check_logging,
+    check_numbers,
+    run_name_problem,
+    size_range,
+)
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, load_config
 from freamer_rl.config.sections import BASE_RANGES, LoggingConfig, RunConfig
 from freamer_rl.errors import ConfigError
@@ -204,21 +212,70 @@ _POS, _NONNEG = (lambda v: v > 0, "> 0"), (lambda v: v >= 0, ">= 0")
 #: >= 1 and floats finite).
 HEALTH_RANGES = {
     "run.seed": BASE_RANGES["run.seed"],
-    **{k: size_range(WIDTH_LIMIT) for k in ("encoder.embed_dim", "encoder.hidden", "encoder.cnn_channels", "encoder.dim",
-                                             "encoder.fm_hidden", "encoder.memory_slots", "encoder.memory_width",
-                                             "world_model.deter_dim", "world_model.stoch_dim", "world_model.hidden",
-                                             "imagination.policy_hidden")},
-    **{k: size_range(BATCH_LIMIT) for k in ("env.num_envs", "eval.num_envs", "world_model.batch_size",
-                                             "world_model.seq_len", "imagination.num_seeds", "imagination.horizon")},
+    **{
+        k: size_range(WIDTH_LIMIT)
+        for k in (
+            "encoder.embed_dim",
+            "encoder.hidden",
+            "encoder.cnn_channels",
+            "encoder.dim",
+            "encoder.fm_hidden",
+            "encoder.memory_slots",
+            "encoder.memory_width",
+            "world_model.deter_dim",
+            "world_model.stoch_dim",
+            "world_model.hidden",
+            "imagination.policy_hidden",
+        )
+    },
+    **{
+        k: size_range(BATCH_LIMIT)
+        for k in (
+            "env.num_envs",
+            "eval.num_envs",
+            "world_model.batch_size",
+            "world_model.seq_len",
+            "imagination.num_seeds",
+            "imagination.horizon",
+        )
+    },
     **{k: size_range(LAYERS_LIMIT) for k in ("encoder.mlp_layers", "encoder.heads", "encoder.fm_steps")},
-    **{k: _NONNEG for k in ("env.data_seed", "eval.seed", "collect.iterations", "collect.prefill_frames",
-                            "world_model.train_steps", "world_model.prefill_train_steps", "imagination.updates",
-                            "eval.every", "encoder.fm_noise_std", "world_model.beta", "world_model.free_nats",
-                            "world_model.reward_scale", "world_model.lambda_fm", "world_model.lambda_smooth",
-                            "imagination.entropy_coeff", "imagination.critic_coeff")},
-    **{k: _POS for k in ("env.rate_hz", "env.synthetic_duration_s", "world_model.lr", "world_model.adam_eps",
-                         "world_model.grad_clip", "imagination.lr", "imagination.adam_eps", "imagination.clip_epsilon",
-                         "imagination.max_grad_norm", "eval.horizon_reward_tol")},
+    **{
+        k: _NONNEG
+        for k in (
+            "env.data_seed",
+            "eval.seed",
+            "collect.iterations",
+            "collect.prefill_frames",
+            "world_model.train_steps",
+            "world_model.prefill_train_steps",
+            "imagination.updates",
+            "eval.every",
+            "encoder.fm_noise_std",
+            "world_model.beta",
+            "world_model.free_nats",
+            "world_model.reward_scale",
+            "world_model.lambda_fm",
+            "world_model.lambda_smooth",
+            "imagination.entropy_coeff",
+            "imagination.critic_coeff",
+        )
+    },
+    **{
+        k: _POS
+        for k in (
+            "env.rate_hz",
+            "env.synthetic_duration_s",
+            "world_model.lr",
+            "world_model.adam_eps",
+            "world_model.grad_clip",
+            "imagination.lr",
+            "imagination.adam_eps",
+            "imagination.clip_epsilon",
+            "imagination.max_grad_norm",
+            "eval.horizon_reward_tol",
+        )
+    },
     "world_model.kl_balance": (_in(0, 1), "in [0, 1]"),
     "imagination.gamma": (_in(0, 1, lo_open=True), "in (0, 1]"),
     "imagination.lmbda": (_in(0, 1), "in [0, 1]"),
@@ -239,17 +296,22 @@ def validate_health_config(cfg: HealthConfig) -> None:
         if m not in MODALITIES:
             raise ConfigError(f"encoder.gate_init: unknown modality {m!r} (known: {', '.join(MODALITIES)})")
     if cfg.imagination.done_mode not in ("threshold", "sample", "never"):
-        raise ConfigError(f"imagination.done_mode: expected threshold, sample or never, got "
-                          f"{cfg.imagination.done_mode!r}")  # fmt: skip
+        raise ConfigError(
+            f"imagination.done_mode: expected threshold, sample or never, got {cfg.imagination.done_mode!r}"
+        )
     if len(cfg.env.reward_weights) != 3:
-        raise ConfigError(f"env.reward_weights: expected 3 numbers (w_safe, w_target, w_fatigue), got "
-                          f"{cfg.env.reward_weights!r}")  # fmt: skip
+        raise ConfigError(
+            f"env.reward_weights: expected 3 numbers (w_safe, w_target, w_fatigue), got {cfg.env.reward_weights!r}"
+        )
     if cfg.encoder.kind in ("slotattn", "foundation") and cfg.encoder.dim % cfg.encoder.heads:
-        raise ConfigError(f"encoder.dim: got {cfg.encoder.dim}, must be divisible by encoder.heads "
-                          f"({cfg.encoder.heads})")  # fmt: skip
+        raise ConfigError(
+            f"encoder.dim: got {cfg.encoder.dim}, must be divisible by encoder.heads ({cfg.encoder.heads})"
+        )
     n = cfg.env.num_envs
-    for name, frames in (("collect.frames_per_iter", cfg.collect.frames_per_iter),
-                         ("collect.prefill_frames", cfg.collect.prefill_frames)):  # fmt: skip
+    for name, frames in (
+        ("collect.frames_per_iter", cfg.collect.frames_per_iter),
+        ("collect.prefill_frames", cfg.collect.prefill_frames),
+    ):
         if frames % n:
             raise ConfigError(f"{name} ({frames}) must be a multiple of env.num_envs ({n})")
     if cfg.collect.frames_per_iter // n < cfg.world_model.seq_len:
@@ -258,16 +320,18 @@ def validate_health_config(cfg: HealthConfig) -> None:
             f"must be >= world_model.seq_len ({cfg.world_model.seq_len}): slices are cut inside one batch"
         )
     if cfg.env.episode_length < cfg.world_model.seq_len:
-        raise ConfigError(f"env.episode_length ({cfg.env.episode_length}) must be >= world_model.seq_len "
-                          f"({cfg.world_model.seq_len})")  # fmt: skip
+        raise ConfigError(
+            f"env.episode_length ({cfg.env.episode_length}) must be >= world_model.seq_len ({cfg.world_model.seq_len})"
+        )
     if cfg.eval.horizon_context + cfg.eval.horizon_max > cfg.env.episode_length:
         raise ConfigError(
             f"eval.horizon_context + eval.horizon_max ({cfg.eval.horizon_context + cfg.eval.horizon_max}) must be "
             f"<= env.episode_length ({cfg.env.episode_length}): windows are cut from evaluation episodes"
         )
     if not 0.0 <= cfg.collect.random_action_prob <= 1.0:
-        raise ConfigError(f"collect.random_action_prob: expected a probability in [0, 1], got "
-                          f"{cfg.collect.random_action_prob}")  # fmt: skip
+        raise ConfigError(
+            f"collect.random_action_prob: expected a probability in [0, 1], got {cfg.collect.random_action_prob}"
+        )
     try:
         explore_probs(cfg.collect.explore_probs, NUM_ACTIONS, "collect.explore_probs")
     except ValueError as err:

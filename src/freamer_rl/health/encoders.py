@@ -50,12 +50,12 @@ from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.modules import set_recurrent_mode
 
-from freamer_rl.model.factory import build_filter_mix_memory
 from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention
 from freamer_rl.layers.fno import FNOFuser
-from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.layers.tdmodule import KeyedModule
+from freamer_rl.model.factory import build_filter_mix_memory
+from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.world_model.encoder import StatelessStepMixin, StepEncoder
 from freamer_rl.world_model.functional import mlp, symlog
 
@@ -100,8 +100,9 @@ def _check_pair(owner: str, imu_name: str, imu: torch.Tensor, hr_name: str, hr: 
     _check(imu_name, imu, IMU_DIM)
     _check(hr_name, hr, HR_DIM)
     if imu.shape[:-1] != hr.shape[:-1]:
-        raise ValueError(f"{owner}: batch dims differ: {imu_name!r} {tuple(imu.shape)} vs {hr_name!r} "
-                         f"{tuple(hr.shape)}")  # fmt: skip
+        raise ValueError(
+            f"{owner}: batch dims differ: {imu_name!r} {tuple(imu.shape)} vs {hr_name!r} {tuple(hr.shape)}"
+        )
 
 
 class _HealthEncoderMixin(StatelessStepMixin):
@@ -153,8 +154,16 @@ class MLPHealthEncoder(_HealthEncoderMixin, nn.Module):
         imu_key, hr_key: observation keys. symlog_inputs: squash the IMU with symlog.
     """
 
-    def __init__(self, out_dim: int = 128, hidden: int = 256, layers: int = 2, *, imu_key: NestedKey = "imu",
-                 hr_key: NestedKey = "hr_features", symlog_inputs: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        out_dim: int = 128,
+        hidden: int = 256,
+        layers: int = 2,
+        *,
+        imu_key: NestedKey = "imu",
+        hr_key: NestedKey = "hr_features",
+        symlog_inputs: bool = True,
+    ) -> None:
         super().__init__()
         self.out_dim = out_dim
         self.imu_key, self.hr_key, self.symlog_inputs = imu_key, hr_key, symlog_inputs
@@ -181,8 +190,16 @@ class CNNHealthEncoder(_HealthEncoderMixin, nn.Module):
         out_dim: ``E``. channels: conv width ``C``. hidden: HR MLP / head width.
     """
 
-    def __init__(self, out_dim: int = 128, channels: int = 32, hidden: int = 128, *, imu_key: NestedKey = "imu",
-                 hr_key: NestedKey = "hr_features", symlog_inputs: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        out_dim: int = 128,
+        channels: int = 32,
+        hidden: int = 128,
+        *,
+        imu_key: NestedKey = "imu",
+        hr_key: NestedKey = "hr_features",
+        symlog_inputs: bool = True,
+    ) -> None:
         super().__init__()
         self.out_dim = out_dim
         self.imu_key, self.hr_key, self.symlog_inputs = imu_key, hr_key, symlog_inputs
@@ -258,9 +275,18 @@ class SlotCrossAttnHealthEncoder(_HealthEncoderMixin, nn.Module):
         out_dim: ``E``. dim: attention width ``d``. heads, hr_tokens, hidden: see :class:`HealthStage1`.
     """
 
-    def __init__(self, out_dim: int = 128, dim: int = 64, heads: int = 4, hr_tokens: int = 4, hidden: int = 128,
-                 *, imu_key: NestedKey = "imu", hr_key: NestedKey = "hr_features",
-                 symlog_inputs: bool = True) -> None:  # fmt: skip
+    def __init__(
+        self,
+        out_dim: int = 128,
+        dim: int = 64,
+        heads: int = 4,
+        hr_tokens: int = 4,
+        hidden: int = 128,
+        *,
+        imu_key: NestedKey = "imu",
+        hr_key: NestedKey = "hr_features",
+        symlog_inputs: bool = True,
+    ) -> None:
         super().__init__()
         self.out_dim = out_dim
         self.imu_key, self.hr_key, self.symlog_inputs = imu_key, hr_key, symlog_inputs
@@ -371,15 +397,26 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         self.in_keys = [self.imu_key, self.hr_key, self.is_init_key, self.memory_key]
         self.out_keys = [self.out_key, self.next_memory_key]
         self.fm_noise_std = fm_noise_std
-        stage1 = KeyedModule(FoundationStage1(HealthStage1(dim, heads, hr_tokens, hidden), symlog_inputs),
-                                  in_keys=[self.imu_key, self.hr_key],
-                                  out_keys=[("embed", "imu"), ("embed", "heart_rate")])  # fmt: skip
+        stage1 = KeyedModule(
+            FoundationStage1(HealthStage1(dim, heads, hr_tokens, hidden), symlog_inputs),
+            in_keys=[self.imu_key, self.hr_key],
+            out_keys=[("embed", "imu"), ("embed", "heart_rate")],
+        )
         layers, refiners, fuser, dnc = build_filter_mix_memory(
-            MODALITIES, dim, flow_hidden=fm_hidden, flow_steps=fm_steps, gate_init=gates,
-            fno_modes=min(fno_modes, dim // 2 + 1), fno_residual_scale=fno_residual_scale,
-            memory_slots=memory_slots, memory_width=memory_width, output_dim=out_dim, out_key=self.out_key,
-            memory_key=self.memory_key, is_init_key=self.is_init_key,
-        )  # fmt: skip
+            MODALITIES,
+            dim,
+            flow_hidden=fm_hidden,
+            flow_steps=fm_steps,
+            gate_init=gates,
+            fno_modes=min(fno_modes, dim // 2 + 1),
+            fno_residual_scale=fno_residual_scale,
+            memory_slots=memory_slots,
+            memory_width=memory_width,
+            output_dim=out_dim,
+            out_key=self.out_key,
+            memory_key=self.memory_key,
+            is_init_key=self.is_init_key,
+        )
         self.trunk = TensorDictSequential(stage1, *layers)
         # references into the trunk (a tuple is not registered: the parameters live once, under ``trunk``)
         self._parts = (stage1.module.stage1, refiners, fuser, dnc)
@@ -389,14 +426,16 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         """Load hook: map the names of the former hand-wired encoder (``stage1.*``, ``refiners.<m>.*``, ``fuser.*``,
         ``dnc.*``) onto the trunk's, so checkpoints written before the shared trunk still load."""
         step = {id(getattr(m, "module", m)): i for i, m in enumerate(self.trunk.module)}
-        old = {"stage1.": f"trunk.module.{step[id(self.trunk.module[0].module)]}.module.stage1.",
-               "fuser.": f"trunk.module.{step[id(self.fuser)]}.module.",
-               "dnc.": f"trunk.module.{step[id(self.dnc)]}.dnc."}  # fmt: skip
+        old = {
+            "stage1.": f"trunk.module.{step[id(self.trunk.module[0].module)]}.module.stage1.",
+            "fuser.": f"trunk.module.{step[id(self.fuser)]}.module.",
+            "dnc.": f"trunk.module.{step[id(self.dnc)]}.dnc.",
+        }
         old.update({f"refiners.{m}.": f"trunk.module.{step[id(r)]}.module." for m, r in self.refiners.items()})
         for key in [k for k in state_dict if k.startswith(prefix)]:
             for before, after in old.items():
                 if key.startswith(prefix + before):
-                    state_dict[prefix + after + key[len(prefix + before):]] = state_dict.pop(key)
+                    state_dict[prefix + after + key[len(prefix + before) :]] = state_dict.pop(key)
                     break
 
     @property
@@ -444,14 +483,19 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         if is_init.shape == (*lead, 1):
             is_init = is_init.squeeze(-1)
         if is_init.shape != lead:
-            raise ValueError(f"is_init: expected shape {tuple(lead)} (or with a trailing 1), got "
-                             f"{tuple(is_init.shape)}")  # fmt: skip
-        td = TensorDict({self.imu_key: imu, self.hr_key: hr, self.is_init_key: is_init.bool().unsqueeze(-1)},
-                        batch_size=lead, device=imu.device)  # fmt: skip
+            raise ValueError(
+                f"is_init: expected shape {tuple(lead)} (or with a trailing 1), got {tuple(is_init.shape)}"
+            )
+        td = TensorDict(
+            {self.imu_key: imu, self.hr_key: hr, self.is_init_key: is_init.bool().unsqueeze(-1)},
+            batch_size=lead,
+            device=imu.device,
+        )
         if memory is not None:
             if tuple(memory.shape) != (*lead, *self.dnc.dnc.memory_shape):
-                raise ValueError(f"memory: expected shape {(*lead, *self.dnc.dnc.memory_shape)}, got "
-                                 f"{tuple(memory.shape)}")  # fmt: skip
+                raise ValueError(
+                    f"memory: expected shape {(*lead, *self.dnc.dnc.memory_shape)}, got {tuple(memory.shape)}"
+                )
             td.set(self.memory_key, memory)
         return td
 
@@ -482,8 +526,9 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
             raise ValueError(f"encode_sequence: expected observations [*B, T, d], got batch dims {tuple(lead)}")
         if memory is not None:
             if tuple(memory.shape) != (*lead[:-1], *self.dnc.dnc.memory_shape):
-                raise ValueError(f"memory: expected shape {(*lead[:-1], *self.dnc.dnc.memory_shape)}, got "
-                                 f"{tuple(memory.shape)}")  # fmt: skip
+                raise ValueError(
+                    f"memory: expected shape {(*lead[:-1], *self.dnc.dnc.memory_shape)}, got {tuple(memory.shape)}"
+                )
             memory = memory.unsqueeze(-3).expand(*lead, *self.dnc.dnc.memory_shape)  # only t = 0 is read
         td = self._tensordict(obs, is_init, memory)
         single = td.batch_dims == 1
@@ -502,8 +547,14 @@ class FoundationHealthEncoder(_HealthEncoderMixin, TensorDictModuleBase):
         the embeddings are detached inside, only the velocity fields learn) and ``loss_smooth = lambda_smooth *
         L_smooth("fused_modalities")`` (Eq. A16 on ``E_out [*B, 2, d]``, gradient into every stage: the literal
         Eq. 6), plus detached ``fm_imu``, ``fm_heart_rate``."""
-        return FreamerAuxLoss(self.refiners, lambda_fm=lambda_fm, lambda_cl=0.0, lambda_smooth=lambda_smooth,
-                              noise_std=self.fm_noise_std, smooth_fuser=None)  # fmt: skip
+        return FreamerAuxLoss(
+            self.refiners,
+            lambda_fm=lambda_fm,
+            lambda_cl=0.0,
+            lambda_smooth=lambda_smooth,
+            noise_std=self.fm_noise_std,
+            smooth_fuser=None,
+        )
 
 
 def make_health_encoder(kind: str, out_dim: int = 128, **kwargs) -> nn.Module:

@@ -22,15 +22,28 @@ from freamer_rl.health.agent import HealthAgent, load_agent, make_health_env
 from freamer_rl.world_model.metrics import imagination_horizon, reconstruction_mse, sample_windows
 
 __all__ = [
-    "STORE_KEYS", "episode_stats", "rollout_metrics", "evaluate_policy", "world_model_metrics", "evaluate_agent",
+    "STORE_KEYS",
+    "episode_stats",
+    "rollout_metrics",
+    "evaluate_policy",
+    "world_model_metrics",
+    "evaluate_agent",
     "evaluate_checkpoint",
-]  # fmt: skip
+]
 
 
 STORE_KEYS = (
-    "imu", "hr_features", "action", ("next", "imu"), ("next", "hr_features"), ("next", "reward"), ("next", "done"),
-    ("next", "terminated"), ("next", "truncated"), ("collector", "traj_ids"),
-)  # fmt: skip
+    "imu",
+    "hr_features",
+    "action",
+    ("next", "imu"),
+    ("next", "hr_features"),
+    ("next", "reward"),
+    ("next", "done"),
+    ("next", "terminated"),
+    ("next", "truncated"),
+    ("collector", "traj_ids"),
+)
 
 
 def episode_stats(data: TensorDictBase) -> dict[str, float]:
@@ -57,8 +70,10 @@ def rollout_metrics(traj: TensorDictBase) -> dict[str, float]:
     n = traj.shape[0]
     done = traj.get(("next", "done")).reshape(n, -1)  # [n, L]
     if not bool(done.any(-1).all()):
-        raise ValueError(f"rollout_metrics: {int((~done.any(-1)).sum())} of {n} envs never reached done in "
-                         f"{traj.shape[1]} steps; roll at least env.episode_length steps")  # fmt: skip
+        raise ValueError(
+            f"rollout_metrics: {int((~done.any(-1)).sum())} of {n} envs never reached done in "
+            f"{traj.shape[1]} steps; roll at least env.episode_length steps"
+        )
     first = done.float().argmax(dim=-1)
     ep = traj.get(("next", "episode"))[torch.arange(n), first]
     ret = ep["return"].float().squeeze(-1)
@@ -72,8 +87,9 @@ def rollout_metrics(traj: TensorDictBase) -> dict[str, float]:
 
 
 @torch.no_grad()
-def evaluate_policy(agent: HealthAgent, *, num_envs: int | None = None, seed: int = 10_000,
-                    deterministic: bool = True) -> tuple[dict[str, float], TensorDictBase]:  # fmt: skip
+def evaluate_policy(
+    agent: HealthAgent, *, num_envs: int | None = None, seed: int = 10_000, deterministic: bool = True
+) -> tuple[dict[str, float], TensorDictBase]:
     """Roll the policy in the real env: ``num_envs`` episodes of ``env.episode_length`` steps (one per env, from a
     fresh env with ``seed``). Returns (metrics, rollout ``[num_envs, episode_length]``).
 
@@ -124,9 +140,13 @@ def evaluate_agent(agent: HealthAgent) -> dict[str, float]:
 
 
 def evaluate_checkpoint(
-    path: str | Path, *, episodes: int = 20, deterministic: bool = True, num_envs: int | None = None,
+    path: str | Path,
+    *,
+    episodes: int = 20,
+    deterministic: bool = True,
+    num_envs: int | None = None,
     seed: int = 12345,
-) -> dict[str, Any]:  # fmt: skip
+) -> dict[str, Any]:
     """``freamer-rl eval`` of a health checkpoint: ``episodes`` real-env episodes (one per env, so ``num_envs`` is
     ``episodes``; a value given must agree) from env seed ``seed``, plus the world-model metrics on them."""
 
@@ -135,5 +155,10 @@ def evaluate_checkpoint(
     agent = load_agent(path)
     metrics, traj = evaluate_policy(agent, num_envs=episodes, seed=seed, deterministic=deterministic)
     metrics.update(world_model_metrics(agent, traj, seed))
-    return {"checkpoint": str(path), "trainer": "health", "encoder": agent.cfg.encoder.kind,
-            "deterministic": deterministic, **metrics}  # fmt: skip
+    return {
+        "checkpoint": str(path),
+        "trainer": "health",
+        "encoder": agent.cfg.encoder.kind,
+        "deterministic": deterministic,
+        **metrics,
+    }

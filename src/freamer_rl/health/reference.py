@@ -55,8 +55,9 @@ class ConstantActionPolicy(TensorDictModuleBase):
         self.out_keys = ["action"]
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        tensordict.set("action", torch.full(tensordict.batch_size, self.action, dtype=torch.int64,
-                                            device=tensordict.device))  # fmt: skip
+        tensordict.set(
+            "action", torch.full(tensordict.batch_size, self.action, dtype=torch.int64, device=tensordict.device)
+        )
         return tensordict
 
 
@@ -93,8 +94,10 @@ class HeartRateThresholdPolicy(TensorDictModuleBase):
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         hr = tensordict.get(self.hr_key)
         if hr.shape != (*tensordict.batch_size, 1):
-            raise ValueError(f"HeartRateThresholdPolicy: expected {self.hr_key!r} of shape "
-                             f"{(*tensordict.batch_size, 1)}, got {tuple(hr.shape)}")  # fmt: skip
+            raise ValueError(
+                f"HeartRateThresholdPolicy: expected {self.hr_key!r} of shape "
+                f"{(*tensordict.batch_size, 1)}, got {tuple(hr.shape)}"
+            )
         hr = hr.squeeze(-1)
         action = torch.zeros_like(hr, dtype=torch.int64)
         action = action.masked_fill(hr > self.rest_above, ACTION_NAMES.index("rest"))
@@ -115,8 +118,9 @@ def make_reference_policy(name: str, *, seed: int = 0, **kwargs: Any) -> TensorD
 
 
 @torch.no_grad()
-def evaluate_reference(cfg: Any, policy: str | TensorDictModuleBase, *, num_envs: int | None = None,
-                       seed: int | None = None) -> dict[str, float]:  # fmt: skip
+def evaluate_reference(
+    cfg: Any, policy: str | TensorDictModuleBase, *, num_envs: int | None = None, seed: int | None = None
+) -> dict[str, float]:
     """Real-env metrics of a reference policy under the evaluation protocol of a
     :class:`~freamer_rl.health.config.HealthConfig` ``cfg`` (``num_envs`` default ``eval.num_envs``, env ``seed``
     default ``eval.seed``): ``return_mean``, ``return_std``, ``violations_mean``, ``length_mean``, ``episodes``."""

@@ -77,10 +77,16 @@ _COLLECTOR = CollectorConfig()
 
 
 def train_world_model_step(
-    world_model: WorldModel, batch: TensorDictBase, optimizer: torch.optim.Optimizer, *, lambda_fm: float = 0.1,
-    lambda_smooth: float = 1e-3, grad_clip: float | None = 1.0, stats: StepStats | None = None,
+    world_model: WorldModel,
+    batch: TensorDictBase,
+    optimizer: torch.optim.Optimizer,
+    *,
+    lambda_fm: float = 0.1,
+    lambda_smooth: float = 1e-3,
+    grad_clip: float | None = 1.0,
+    stats: StepStats | None = None,
     aux_loss: LossModule | None = None,
-) -> dict[str, float]:  # fmt: skip
+) -> dict[str, float]:
     """One gradient step of Eq. A27 on a ``[N, T]`` slice plus the encoder's auxiliary losses through
     :func:`~freamer_rl.run.optim.optimizer_step`.
 
@@ -115,17 +121,21 @@ class HealthTrainer:
     :data:`freamer_rl.trainers.health.STRUCTURAL`). Holds the run directory's lock from construction until
     :meth:`train` returns (see the module docstring)."""
 
-    def __init__(self, cfg: HealthConfig, run_dir: str | Path, *, resume: bool = True,
-                 structural: Sequence[str]) -> None:  # fmt: skip
+    def __init__(
+        self, cfg: HealthConfig, run_dir: str | Path, *, resume: bool = True, structural: Sequence[str]
+    ) -> None:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.life = RunLifecycle(
-            self.run_dir, trainer_name=TRAINER_NAME, config=health_config_to_dict(cfg),
-            read_checkpoint=functools.partial(read_checkpoint, fmt=CHECKPOINT_FORMAT), structural=tuple(structural),
+            self.run_dir,
+            trainer_name=TRAINER_NAME,
+            config=health_config_to_dict(cfg),
+            read_checkpoint=functools.partial(read_checkpoint, fmt=CHECKPOINT_FORMAT),
+            structural=tuple(structural),
             defaults=health_config_to_dict(HealthConfig()),
             title=f"health ({cfg.encoder.kind} encoder) -- {TRAINER_LABEL}, seed {cfg.run.seed}",
             curve={"returns": HEALTH_RETURNS, "return_label": "episode return"},
-        )  # fmt: skip
+        )
         ckpt = self.life.open(resume, "delete it yourself (resume is the default: drop --no-resume to continue it)")
         try:
             self._build(0 if ckpt is None else int(ckpt.get("frames", 0)))
@@ -157,8 +167,9 @@ class HealthTrainer:
         # a resumed run does not replay the episodes of the first attempt
         env_seed = cfg.run.seed if frames == 0 else cfg.run.seed * 10_000 + frames
         env_fn = functools.partial(make_health_env, cfg, seed=env_seed, primer=self.policy.make_tensordict_primer())
-        self.collector = make_collector(_COLLECTOR, [env_fn], self.policy, frames_per_batch=cc.frames_per_iter,
-                                        total_frames=-1, devices={})  # fmt: skip
+        self.collector = make_collector(
+            _COLLECTOR, [env_fn], self.policy, frames_per_batch=cc.frames_per_iter, total_frames=-1, devices={}
+        )
         self._batches = iter(self.collector)
         self.rb = ReplayBuffer(
             storage=LazyTensorStorage(cc.buffer_capacity),
@@ -169,12 +180,22 @@ class HealthTrainer:
         self.wm_opt = torch.optim.Adam(wm.parameters(), lr=wc.lr, eps=wc.adam_eps)
         self.wm_stats = StepStats("health world model")
         self.algo = ImaginationPPO(
-            RSSMWorldModelEnv(wm, done_mode=ic.done_mode), self.agent.actor, self.agent.value, horizon=ic.horizon,
-            gamma=ic.gamma, lmbda=ic.lmbda, clip_epsilon=ic.clip_epsilon, epochs=ic.epochs,
-            num_minibatches=ic.num_minibatches, entropy_coeff=ic.entropy_coeff, critic_coeff=ic.critic_coeff,
-            lr=ic.lr, adam_eps=ic.adam_eps, max_grad_norm=ic.max_grad_norm,
+            RSSMWorldModelEnv(wm, done_mode=ic.done_mode),
+            self.agent.actor,
+            self.agent.value,
+            horizon=ic.horizon,
+            gamma=ic.gamma,
+            lmbda=ic.lmbda,
+            clip_epsilon=ic.clip_epsilon,
+            epochs=ic.epochs,
+            num_minibatches=ic.num_minibatches,
+            entropy_coeff=ic.entropy_coeff,
+            critic_coeff=ic.critic_coeff,
+            lr=ic.lr,
+            adam_eps=ic.adam_eps,
+            max_grad_norm=ic.max_grad_norm,
             lambda_return_actor_critic=ic.lambda_return_actor_critic,
-        )  # fmt: skip
+        )
         self.frames = 0
         self.iteration = 0  # loop iterations finished
         self.prefilled = False
@@ -204,8 +225,7 @@ class HealthTrainer:
             self.agent.value.load_state_dict(ckpt["value"])
             # Adam's moments are kept, the current recipe sets lr and eps (as every trainer's resume)
             restore_optimizer(self.wm_opt, ckpt["wm_optimizer"], OptimConfig(lr=wc.lr, eps=wc.adam_eps), 0, 1)
-            restore_optimizer(self.algo.optimizer, ckpt["ppo_optimizer"], OptimConfig(lr=ic.lr, eps=ic.adam_eps),
-                              0, 1)  # fmt: skip
+            restore_optimizer(self.algo.optimizer, ckpt["ppo_optimizer"], OptimConfig(lr=ic.lr, eps=ic.adam_eps), 0, 1)
             self.wm_stats.load_state_dict(ckpt["wm_steps"])
             self.algo.step_stats.load_state_dict(ckpt["ppo_steps"])
             if ckpt["replay"] is not None:
@@ -237,8 +257,11 @@ class HealthTrainer:
         aux = wm.encoder.make_aux_loss(lambda_fm=wc.lambda_fm, lambda_smooth=wc.lambda_smooth)
         means = LogMeans()
         for _ in range(steps):
-            means.add(train_world_model_step(wm, self._sample(), self.wm_opt, grad_clip=wc.grad_clip,
-                                             stats=self.wm_stats, aux_loss=aux))  # fmt: skip
+            means.add(
+                train_world_model_step(
+                    wm, self._sample(), self.wm_opt, grad_clip=wc.grad_clip, stats=self.wm_stats, aux_loss=aux
+                )
+            )
         return means.means("wm_")
 
     def _train_policy(self) -> dict[str, float]:
@@ -261,8 +284,12 @@ class HealthTrainer:
         if not stats:
             return None
         ep = [s for s in stats if s["episodes"]]
-        row: dict[str, Any] = {"iteration": 0, "frames": self.frames, "train_episodes": sum(s["episodes"] for s in ep),
-                               "train_return": float(np.mean([s["return"] for s in ep])) if ep else float("nan")}
+        row: dict[str, Any] = {
+            "iteration": 0,
+            "frames": self.frames,
+            "train_episodes": sum(s["episodes"] for s in ep),
+            "train_return": float(np.mean([s["return"] for s in ep])) if ep else float("nan"),
+        }
         row.update(self._train_world_model(wc.prefill_train_steps))
         row["wall_s"] = self.life.wall_time
         logger.info("prefill: %d random frames, %d world-model steps", self.frames, wc.prefill_train_steps)
@@ -270,8 +297,13 @@ class HealthTrainer:
 
     def _iterate(self, it: int) -> dict[str, Any]:
         stats = self._collect()
-        row: dict[str, Any] = {"iteration": it, "frames": self.frames, "train_episodes": stats["episodes"],
-                               "train_return": stats["return"], "train_violations": stats["violations"]}
+        row: dict[str, Any] = {
+            "iteration": it,
+            "frames": self.frames,
+            "train_episodes": stats["episodes"],
+            "train_return": stats["return"],
+            "train_violations": stats["violations"],
+        }
         row.update(self._train_world_model(self.cfg.world_model.train_steps))
         row.update(self._train_policy())
         row.update({f"gate_{m}": g for m, g in self.agent.world_model.encoder.gates.items()})
@@ -295,7 +327,9 @@ class HealthTrainer:
         cfg, cc = self.cfg, self.cfg.collect
         metrics = self.life.metrics_logger(cfg.logging.backend, option="logging.backend")
         total = (self._prefill_batches() + cc.iterations) * cc.frames_per_iter
-        progress = ProgressReporter(total, self.frames, bar=cfg.logging.progress_bar, desc=f"health[{cfg.encoder.kind}]")
+        progress = ProgressReporter(
+            total, self.frames, bar=cfg.logging.progress_bar, desc=f"health[{cfg.encoder.kind}]"
+        )
         try:
             if not self.prefilled:
                 row = self._prefill()
@@ -310,9 +344,15 @@ class HealthTrainer:
                 self.iteration = it
                 self.life.log_row(row, metrics, self.frames)
                 self.life.checkpoint(self._payload())  # each iteration: a crash or a kill resumes from here
-                progress.update(self.frames, self.frames - before, extra={
-                    "iteration": f"{it}/{cc.iterations}", "return": format_rate(row["train_return"], 1),
-                    "rec": format_rate(row.get("wm_loss_rec", math.nan))})  # fmt: skip
+                progress.update(
+                    self.frames,
+                    self.frames - before,
+                    extra={
+                        "iteration": f"{it}/{cc.iterations}",
+                        "return": format_rate(row["train_return"], 1),
+                        "rec": format_rate(row.get("wm_loss_rec", math.nan)),
+                    },
+                )
         except KeyboardInterrupt as err:
             self.life.interrupted(err, f"after iteration {self.iteration}", latest_checkpoint(self.run_dir))
             raise
@@ -329,9 +369,14 @@ class HealthTrainer:
         self.life.checkpoint(self._payload())
         save_agent(self.agent, self.run_dir, iteration=self.iteration, frames=self.frames)
         summary = self.life.write_summary(self._summary(final))
-        logger.info("health run finished: %d frames | evaluation return %s | recon_mse %s | wall time %s | run dir %s",
-                    self.frames, format_rate(summary.get("eval_return_mean")), format_rate(summary.get("recon_mse"), 4),
-                    format_duration(summary["wall_time_s"]), self.run_dir)  # fmt: skip
+        logger.info(
+            "health run finished: %d frames | evaluation return %s | recon_mse %s | wall time %s | run dir %s",
+            self.frames,
+            format_rate(summary.get("eval_return_mean")),
+            format_rate(summary.get("recon_mse"), 4),
+            format_duration(summary["wall_time_s"]),
+            self.run_dir,
+        )
         return summary
 
     def _summary(self, final: dict[str, float]) -> dict[str, Any]:
@@ -352,9 +397,11 @@ class HealthTrainer:
             **{k: v for k, v in final.items() if not k.startswith(("eval_recon", "eval_imagination"))},
             **{k[5:]: v for k, v in final.items() if k.startswith(("eval_recon", "eval_imagination"))},
             "imagination_horizon_definition": {
-                "context": cfg.eval.horizon_context, "max": cfg.eval.horizon_max,
-                "reward_tol": cfg.eval.horizon_reward_tol, "windows": cfg.eval.horizon_windows,
-            },  # fmt: skip
+                "context": cfg.eval.horizon_context,
+                "max": cfg.eval.horizon_max,
+                "reward_tol": cfg.eval.horizon_reward_tol,
+                "windows": cfg.eval.horizon_windows,
+            },
             "params_world_model": encoder + rssm,
             "params_encoder": encoder,
             "params_policy": actor + value,
@@ -366,8 +413,9 @@ class HealthTrainer:
         }
 
 
-def run_health(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True,
-               structural: Sequence[str]) -> dict[str, Any]:  # fmt: skip
+def run_health(
+    cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True, structural: Sequence[str]
+) -> dict[str, Any]:
     """Train a health agent and evaluate it in the real env; returns the summary (also ``summary.json``).
 
     ``run_dir`` default: ``<run.output_dir>/<run.name or health-<kind>-s<seed>-<time>>``; ``structural``: the

@@ -178,7 +178,9 @@ class ClipBackbone(nn.Module):
         patch = visual.conv1.kernel_size[0] if hasattr(visual, "conv1") else None
         grid = getattr(visual, "grid_size", None)
         self.num_tokens = int(grid[0] * grid[1]) if grid is not None else (self.image_size // patch) ** 2
-        self.token_dim = int(visual.transformer.width if hasattr(visual, "transformer") else visual.ln_post.weight.shape[0])
+        self.token_dim = int(
+            visual.transformer.width if hasattr(visual, "transformer") else visual.ln_post.weight.shape[0]
+        )
         self.out_dim = self.token_dim
         self.register_buffer("mean", torch.tensor(CLIP_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(CLIP_STD).view(1, 3, 1, 1), persistent=False)
@@ -194,8 +196,14 @@ class ClipBackbone(nn.Module):
 
     # ------------------------------------------------------------------ weights
     def _resolve_weights(
-        self, open_clip, model_name: str, pretrained: str | None, checkpoint_path: str | None, tag_cfg: dict,
-        cache_dir: str | None, allow_random_weights: bool,
+        self,
+        open_clip,
+        model_name: str,
+        pretrained: str | None,
+        checkpoint_path: str | None,
+        tag_cfg: dict,
+        cache_dir: str | None,
+        allow_random_weights: bool,
     ) -> Path | None:
         """The weights file to load (None: random weights, only when allowed); sets ``self.weights_source``."""
         weights_file: Path | None = None

@@ -49,8 +49,13 @@ class CompileOrEager:
         self._compiled = None
         self.fallbacks += 1
         first = (str(compile_error).strip().splitlines() or [type(compile_error).__name__])[0][:300]
-        logger.warning("%s: torch.compile failed (%s: %s); running it eagerly from now on (set model.compile=false "
-                       "to skip compiling)", self.name, type(compile_error).__name__, first)
+        logger.warning(
+            "%s: torch.compile failed (%s: %s); running it eagerly from now on (set model.compile=false "
+            "to skip compiling)",
+            self.name,
+            type(compile_error).__name__,
+            first,
+        )
         return result
 
     def __getstate__(self) -> dict:

@@ -221,7 +221,11 @@ class DNCMemory(nn.Module):
         if self._clip_warnings <= 10 or self._clip_warnings % 1000 == 0:
             logger.warning(
                 "DNCMemory: clamped %d memory entries to |M| <= %g (total clamped entries: %d, warning %d; only the "
-                "first 10 and every 1000th are logged)", n, self.memory_clip, self.clip_events, self._clip_warnings,
+                "first 10 and every 1000th are logged)",
+                n,
+                self.memory_clip,
+                self.clip_events,
+                self._clip_warnings,
             )
 
     def forward(self, x: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

@@ -96,9 +96,7 @@ class RewardEncoder(nn.Module):
     def forward(self, rewards: torch.Tensor) -> torch.Tensor:
         """``rewards [*B, H]`` -> ``[*B, out_dim]``."""
         if rewards.dim() < 1 or rewards.shape[-1] != self.history:
-            raise ValueError(
-                f"RewardEncoder reward_history: expected [*B, {self.history}], got {tuple(rewards.shape)}"
-            )
+            raise ValueError(f"RewardEncoder reward_history: expected [*B, {self.history}], got {tuple(rewards.shape)}")
         check_finite(rewards, "RewardEncoder reward_history")
         batch_shape = rewards.shape[:-1]
         x = rewards.reshape(-1, self.history).to(self.proj.weight.dtype)

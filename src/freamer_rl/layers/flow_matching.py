@@ -89,9 +89,7 @@ def _time_column(t: float | torch.Tensor, like: torch.Tensor) -> torch.Tensor:
     return t.expand(*batch_shape, 1)
 
 
-def cfm_interpolant(
-    x0: torch.Tensor, x1: torch.Tensor, t: float | torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
+def cfm_interpolant(x0: torch.Tensor, x1: torch.Tensor, t: float | torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Straight-line conditional path and its velocity (Eq. A13's ``x_t`` and ``z - x_0``).
 
     Args:

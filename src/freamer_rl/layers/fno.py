@@ -232,9 +232,7 @@ class StateFNOEncoder(nn.Module):
         self.pointwise = nn.Conv1d(channels, channels, kernel_size=1)
         self.proj = nn.Linear(channels * self.seq_len, out_dim)  # input flattened cell-major: [L, C]
         self.direction_embed = nn.Embedding(num_directions, out_dim)
-        self.register_buffer(
-            "_offsets", torch.tensor([0, num_objects, num_objects + num_colors]), persistent=False
-        )
+        self.register_buffer("_offsets", torch.tensor([0, num_objects, num_objects + num_colors]), persistent=False)
         # a plain attribute (not a Module): parameters and state dict are unchanged
         self._compiled_encode = CompileOrEager(self._encode, "StateFNOEncoder", dynamic=True) if compile else None
 
@@ -268,9 +266,7 @@ class StateFNOEncoder(nn.Module):
         if direction.numel() > 0:
             lo, hi = int(direction.min()), int(direction.max())
             if lo < 0 or hi >= self.num_directions:
-                raise ValueError(
-                    f"direction must lie in [0, {self.num_directions - 1}]; got values in [{lo}, {hi}]"
-                )
+                raise ValueError(f"direction must lie in [0, {self.num_directions - 1}]; got values in [{lo}, {hi}]")
 
     def forward(self, grid: torch.Tensor, direction: torch.Tensor) -> torch.Tensor:
         if grid.ndim >= 3 and direction.shape == (*grid.shape[:-3], 1):

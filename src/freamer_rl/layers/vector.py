@@ -50,7 +50,9 @@ class VectorEncoder(nn.Module):
     ) -> None:
         super().__init__()
         if in_features < 1 or out_dim < 1 or hidden < 1:
-            raise ValueError(f"in_features, out_dim and hidden must be positive; got {in_features}, {out_dim}, {hidden}")
+            raise ValueError(
+                f"in_features, out_dim and hidden must be positive; got {in_features}, {out_dim}, {hidden}"
+            )
         self.in_shapes = [tuple(s) for s in (in_shapes or [(in_features,)])]
         sizes = [int(torch.Size(s).numel()) for s in self.in_shapes]
         if sum(sizes) != in_features:
@@ -68,9 +70,10 @@ class VectorEncoder(nn.Module):
         batch_shape = None
         for i, (x, shape) in enumerate(zip(xs, self.in_shapes)):
             n = len(shape)
-            if tuple(x.shape[x.ndim - n:]) != shape or x.ndim < n:
-                raise ValueError(f"VectorEncoder input {i}: expected [*B, {', '.join(map(str, shape))}], "
-                                 f"got {tuple(x.shape)}")
+            if tuple(x.shape[x.ndim - n :]) != shape or x.ndim < n:
+                raise ValueError(
+                    f"VectorEncoder input {i}: expected [*B, {', '.join(map(str, shape))}], got {tuple(x.shape)}"
+                )
             lead = x.shape[: x.ndim - n]
             if batch_shape is None:
                 batch_shape = lead

@@ -16,19 +16,27 @@ def check_machinery(cfg: Any) -> None:
     if lang.parser not in ("regex", "llm"):
         raise ConfigError(f"shaping.language.parser: expected 'regex' or 'llm', got {lang.parser!r}")
     if lang.weight and lang.parser == "llm" and not lang.llm_path:
-        raise ConfigError("shaping.language.llm_path: parser 'llm' needs the local directory of the model weights "
-                          "(e.g. Qwen2.5-1.5B-Instruct), or use shaping.language.parser=regex")  # fmt: skip
+        raise ConfigError(
+            "shaping.language.llm_path: parser 'llm' needs the local directory of the model weights "
+            "(e.g. Qwen2.5-1.5B-Instruct), or use shaping.language.parser=regex"
+        )
     if cfg.ogm.mode not in ("none", "A", "B"):
         raise ConfigError(f"ogm.mode: expected none, A or B, got {cfg.ogm.mode!r}")
     if cfg.ogm.mode != "none" and cfg.model.flow.placement != "pre":
-        raise ConfigError(f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE modulates one refiner per modality and "
-                          f"model.flow.placement is {cfg.model.flow.placement!r}; use placement pre or ogm.mode=none")
+        raise ConfigError(
+            f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE modulates one refiner per modality and "
+            f"model.flow.placement is {cfg.model.flow.placement!r}; use placement pre or ogm.mode=none"
+        )
     if cfg.ogm.mode != "none" and not cfg.aux.lambda_fm:
-        raise ConfigError(f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE is driven by the FM losses and aux.lambda_fm "
-                          "is 0; set aux.lambda_fm > 0 or ogm.mode=none")  # fmt: skip
+        raise ConfigError(
+            f"ogm.mode: got {cfg.ogm.mode!r}, but OGM-GE is driven by the FM losses and aux.lambda_fm "
+            "is 0; set aux.lambda_fm > 0 or ogm.mode=none"
+        )
     mods = set(cfg.model.modalities)
     if cfg.shaping.vision_language and not ("language" in mods and mods & {"vision", "state"}):
-        raise ConfigError(f"shaping.vision_language: got {cfg.shaping.vision_language}, but R_VL needs the language "
-                          f"modality and vision or state in model.modalities {cfg.model.modalities}; set it to 0")
+        raise ConfigError(
+            f"shaping.vision_language: got {cfg.shaping.vision_language}, but R_VL needs the language "
+            f"modality and vision or state in model.modalities {cfg.model.modalities}; set it to 0"
+        )
     if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
         raise ConfigError("shaping.novelty.keys: got [], give at least one observation entry to hash")

@@ -83,4 +83,3 @@ MACHINERY_RANGES: dict[str, Range] = {
     "ogm.lr_scale": (POSITIVE, "> 0"),
     "ogm.ema": (lambda v: 0 <= v < 1, "in [0, 1)"),
 }
-

@@ -76,8 +76,14 @@ class NoveltyBonus(Transform):
             many bytes (16 gives a 128-bit key; a collision between n states has probability ~``n^2 / 2^129``).
     """
 
-    def __init__(self, in_keys: Sequence[NestedKey], out_key: NestedKey = "novelty_bonus", *, alpha: float = 0.5,
-                 digest_size: int | None = None) -> None:
+    def __init__(
+        self,
+        in_keys: Sequence[NestedKey],
+        out_key: NestedKey = "novelty_bonus",
+        *,
+        alpha: float = 0.5,
+        digest_size: int | None = None,
+    ) -> None:
         if isinstance(in_keys, (str, tuple)):
             in_keys = [in_keys]
         if not in_keys:
@@ -102,8 +108,10 @@ class NoveltyBonus(Transform):
         for key in self.in_keys:
             value = td.get(key, None)
             if value is None:
-                raise KeyError(f"NoveltyBonus: observation entry {key!r} is missing (in_keys={self.in_keys}); "
-                               f"the env provides {list(td.keys(True, True))}")  # fmt: skip
+                raise KeyError(
+                    f"NoveltyBonus: observation entry {key!r} is missing (in_keys={self.in_keys}); "
+                    f"the env provides {list(td.keys(True, True))}"
+                )
             parts.append(value.detach().reshape(rows, -1).cpu().contiguous().numpy())
         keys = [b"".join(p[i].tobytes() for p in parts) for i in range(rows)]
         if self.digest_size is not None:
@@ -122,8 +130,12 @@ class NoveltyBonus(Transform):
     def _ensure_rows(self, rows: int) -> None:
         if len(self._last) != rows:  # first use, or the batch size changed: start every row afresh
             if self._last:
-                logger.warning("NoveltyBonus: the env batch changed from %d to %d rows; episodic sets restarted "
-                               "(the counts are kept)", len(self._last), rows)  # fmt: skip
+                logger.warning(
+                    "NoveltyBonus: the env batch changed from %d to %d rows; episodic sets restarted "
+                    "(the counts are kept)",
+                    len(self._last),
+                    rows,
+                )
             self._episodic = [set() for _ in range(rows)]
             self._last = [None] * rows
 
@@ -143,8 +155,9 @@ class NoveltyBonus(Transform):
         tensordict_reset.set(self.out_key, torch.zeros(*batch, 1, dtype=torch.float32, device=tensordict_reset.device))
         return tensordict_reset
 
-    def _reset_on_native_autoreset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
-                                   ) -> TensorDictBase:  # fmt: skip
+    def _reset_on_native_autoreset(
+        self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase
+    ) -> TensorDictBase:
         return self._reset(tensordict, tensordict_reset)
 
     def _step(self, tensordict: TensorDictBase, next_tensordict: TensorDictBase) -> TensorDictBase:
@@ -170,8 +183,10 @@ class NoveltyBonus(Transform):
         return observation_spec
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
-        raise RuntimeError("NoveltyBonus is an online env transform (it counts visits as the env steps): append it "
-                           "to a TransformedEnv; it cannot be applied to stored data")  # fmt: skip
+        raise RuntimeError(
+            "NoveltyBonus is an online env transform (it counts visits as the env steps): append it "
+            "to a TransformedEnv; it cannot be applied to stored data"
+        )
 
     # -- logging --------------------------------------------------------------------------------------------------
     def counts_summary(self) -> dict[str, int]:
@@ -186,8 +201,10 @@ class NoveltyBonus(Transform):
         self._last = []
 
     def __repr__(self) -> str:
-        return (f"{type(self).__name__}(in_keys={self.in_keys}, out_key={self.out_key!r}, alpha={self.alpha}, "
-                f"distinct_states={len(self._counts)})")  # fmt: skip
+        return (
+            f"{type(self).__name__}(in_keys={self.in_keys}, out_key={self.out_key!r}, alpha={self.alpha}, "
+            f"distinct_states={len(self._counts)})"
+        )
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -300,8 +317,9 @@ class CuriosityModel(nn.Module):
         self.err_var.copy_(m2 / total)
         self.err_count.copy_(total)
 
-    def intrinsic_reward(self, phi: torch.Tensor, action: torch.Tensor, valid: torch.Tensor, *,
-                         update_stats: bool = True) -> torch.Tensor:  # fmt: skip
+    def intrinsic_reward(
+        self, phi: torch.Tensor, action: torch.Tensor, valid: torch.Tensor, *, update_stats: bool = True
+    ) -> torch.Tensor:
         """Normalised curiosity ``r_t = (e_t - mean_batch(e)) / std(e)`` ``[*B, T, 1]`` (the mean over this batch's
         valid steps, the running std; no gradient), 0 where invalid.
 

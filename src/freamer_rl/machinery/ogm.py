@@ -121,8 +121,15 @@ class OGMGE:
             params = [p for p in self._modulated_params(refiner) if id(p) not in claimed]
             claimed.update(id(p) for p in params)
             if params:
-                groups.append({"params": params, "lr": base_lr * group_scale, "lr_scale": group_scale,
-                               "name": f"ogm_{m}", "ogm_modality": m})  # fmt: skip
+                groups.append(
+                    {
+                        "params": params,
+                        "lr": base_lr * group_scale,
+                        "lr_scale": group_scale,
+                        "name": f"ogm_{m}",
+                        "ogm_modality": m,
+                    }
+                )
         rest: list[torch.Tensor] = []
         for p in all_params:
             if id(p) not in claimed:

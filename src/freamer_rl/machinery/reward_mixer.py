@@ -74,8 +74,14 @@ class RewardMixer(nn.Module):
 
     default_keys = _AcceptedKeys
 
-    def __init__(self, terms: dict[str, tuple[NestedKey, float]] | None = None, *, adaptive: bool = True,
-                 time_penalty: float = 0.0, out_key: NestedKey | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        terms: dict[str, tuple[NestedKey, float]] | None = None,
+        *,
+        adaptive: bool = True,
+        time_penalty: float = 0.0,
+        out_key: NestedKey | None = None,
+    ) -> None:
         super().__init__()
         self.terms: dict[str, tuple[NestedKey, float]] = {}
         for name, (key, weight) in (terms or {}).items():
@@ -96,8 +102,9 @@ class RewardMixer(nn.Module):
         allowed = {f.name for f in fields(self._AcceptedKeys)}
         for name, key in kwargs.items():
             if name not in allowed:
-                raise ValueError(f"RewardMixer.set_keys: {name!r} is not a key of the mixer "
-                                 f"(expected one of {sorted(allowed)})")
+                raise ValueError(
+                    f"RewardMixer.set_keys: {name!r} is not a key of the mixer (expected one of {sorted(allowed)})"
+                )
             setattr(self.tensor_keys, name, key)
         return self
 
@@ -137,8 +144,9 @@ class RewardMixer(nn.Module):
     def _get(self, td: TensorDictBase, name: str, key: NestedKey) -> torch.Tensor:
         value = td.get(key, None)
         if value is None:
-            writer = KNOWN_WRITERS.get(_last(key), "whatever produces it (an env transform, or a module run on the "
-                                                   "batch before the mixer)")  # fmt: skip
+            writer = KNOWN_WRITERS.get(
+                _last(key), "whatever produces it (an env transform, or a module run on the batch before the mixer)"
+            )
             raise KeyError(f"RewardMixer: {name} key {key!r} is missing from the tensordict; it is written by {writer}")
         return value
 

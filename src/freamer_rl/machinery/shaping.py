@@ -23,8 +23,8 @@ import torch
 from tensordict import TensorDictBase
 
 from freamer_rl.machinery.exploration import CuriosityModel, NoveltyBonus, vision_language_similarity
-from freamer_rl.run.optim import StepStats, optimizer_step
 from freamer_rl.machinery.reward_mixer import RewardMixer
+from freamer_rl.run.optim import StepStats, optimizer_step
 
 SHAPED_REWARD = "shaped_reward"
 CURIOSITY_EPS = 1e-5  # Adam eps of the curiosity forward model (its lr: shaping.curiosity_lr)
@@ -80,8 +80,9 @@ class RewardShaper:
             self.step_stats = StepStats("curiosity")
             terms["curiosity"] = (("next", "curiosity_reward"), s.curiosity)
         self.active = bool(terms) or s.time_penalty > 0
-        self.mixer = RewardMixer(terms, adaptive=s.adaptive, time_penalty=s.time_penalty,
-                                 out_key=("next", SHAPED_REWARD))  # fmt: skip
+        self.mixer = RewardMixer(
+            terms, adaptive=s.adaptive, time_penalty=s.time_penalty, out_key=("next", SHAPED_REWARD)
+        )
 
     def __call__(self, data: TensorDictBase, success_rate: float) -> dict[str, float]:
         """Write the trainer-side terms and the shaped reward into ``data``; returns diagnostics for progress.csv."""

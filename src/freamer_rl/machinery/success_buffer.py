@@ -54,13 +54,13 @@ Wiring (the trainer; see the ``success_buffer`` tests for the callables on Fream
 from __future__ import annotations
 
 import logging
-from typing import Callable
+from collections.abc import Callable
 
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.utils import NestedKey
-from torchrl.objectives.value.functional import vtrace_advantage_estimate
 from torchrl.modules import set_recurrent_mode
+from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
 from freamer_rl.errors import ConfigError
 from freamer_rl.run import env_registry
@@ -69,8 +69,18 @@ from freamer_rl.run.sequences import split_sequences
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "REPLAY_MASK_KEY", "LOSS_WEIGHT_KEY", "LOSS_MASK_KEY", "REPLAY_NEXT_KEYS", "DEFAULT_REWARD_KEY", "SuccessBuffer",
-    "correct_replay", "mix_minibatch", "replay_sequences", "success_step_mask", "vtrace_targets", "weighted_ppo_loss",
+    "REPLAY_MASK_KEY",
+    "LOSS_WEIGHT_KEY",
+    "LOSS_MASK_KEY",
+    "REPLAY_NEXT_KEYS",
+    "DEFAULT_REWARD_KEY",
+    "SuccessBuffer",
+    "correct_replay",
+    "mix_minibatch",
+    "replay_sequences",
+    "success_step_mask",
+    "vtrace_targets",
+    "weighted_ppo_loss",
 ]
 
 #: bool ``[S, L]``: the step belongs to an episode that ended successfully (only those steps are trained on).
@@ -147,7 +157,11 @@ def success_step_mask(data: TensorDictBase, success_fn: Callable[[TensorDictBase
 
 
 def replay_sequences(
-    data: TensorDictBase, mask: torch.Tensor, seq_len: int, *, drop: tuple[NestedKey, ...] | list = (),
+    data: TensorDictBase,
+    mask: torch.Tensor,
+    seq_len: int,
+    *,
+    drop: tuple[NestedKey, ...] | list = (),
     reward_key: NestedKey = DEFAULT_REWARD_KEY,
 ) -> TensorDictBase:
     """The collected batch ``[*B, T]`` cut into ``[S, seq_len]`` sequences for :class:`SuccessBuffer`.
@@ -212,7 +226,7 @@ class SuccessBuffer:
         if kept.shape[0] == 0:
             return 0
         kept.set(REPLAY_MASK_KEY, mask[keep])
-        self._write(kept[-self.capacity:])
+        self._write(kept[-self.capacity :])
         return int(kept.shape[0])
 
     def _write(self, rows: TensorDictBase) -> None:
@@ -220,12 +234,15 @@ class SuccessBuffer:
         if self._storage is None:
             self._storage = rows[:1].new_zeros(self.capacity, rows.shape[1])
         elif rows.shape[1] != self._storage.shape[1]:
-            raise ValueError(f"SuccessBuffer: sequences of length {rows.shape[1]} into a buffer of length "
-                             f"{self._storage.shape[1]}")
+            raise ValueError(
+                f"SuccessBuffer: sequences of length {rows.shape[1]} into a buffer of length {self._storage.shape[1]}"
+            )
         have, new = set(self._storage.keys(True, True)), set(rows.keys(True, True))
         if have != new:
-            raise ValueError(f"SuccessBuffer: the entries differ from the stored ones: missing "
-                             f"{sorted(map(str, have - new))}, extra {sorted(map(str, new - have))}")
+            raise ValueError(
+                f"SuccessBuffer: the entries differ from the stored ones: missing "
+                f"{sorted(map(str, have - new))}, extra {sorted(map(str, new - have))}"
+            )
         idx = (self._cursor + torch.arange(rows.shape[0], device=self.device)) % self.capacity
         self._storage[idx] = rows
         self._cursor = (self._cursor + rows.shape[0]) % self.capacity
@@ -267,7 +284,7 @@ class SuccessBuffer:
         if state["rows"] is None or int(state["size"]) == 0:
             return
         rows = TensorDict(state["rows"], batch_size=[int(state["size"]), int(state["seq_len"])])
-        self._write(rows[-self.capacity:])
+        self._write(rows[-self.capacity :])
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -284,8 +301,14 @@ def _as_steps(x: torch.Tensor, S: int, L: int, name: str) -> torch.Tensor:
 
 
 def vtrace_targets(
-    gamma: float, log_pi: torch.Tensor, log_mu: torch.Tensor, value: torch.Tensor, reward: torch.Tensor,
-    done: torch.Tensor, terminated: torch.Tensor, rho_clip: float,
+    gamma: float,
+    log_pi: torch.Tensor,
+    log_mu: torch.Tensor,
+    value: torch.Tensor,
+    reward: torch.Tensor,
+    done: torch.Tensor,
+    terminated: torch.Tensor,
+    rho_clip: float,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """V-trace on ``[S, L, 1]`` sequences whose successor values come from the sequence itself.
 
@@ -313,9 +336,18 @@ def vtrace_targets(
     reward = torch.where(boot, value, reward)
     done, terminated = done | boot, terminated | boot
     _, v = vtrace_advantage_estimate(
-        gamma, log_pi, log_mu, value, next_value, reward, done, terminated,
-        rho_thresh=rho_clip, c_thresh=rho_clip, time_dim=-2,
-    )  # fmt: skip
+        gamma,
+        log_pi,
+        log_mu,
+        value,
+        next_value,
+        reward,
+        done,
+        terminated,
+        rho_thresh=rho_clip,
+        c_thresh=rho_clip,
+        time_dim=-2,
+    )
     v_next = torch.where(done, next_value, torch.cat([v[..., 1:, :], next_value[..., -1:, :]], dim=-2))
     advantage = reward + gamma * (~terminated).to(value.dtype) * v_next - value
     return v, advantage, has_next
@@ -349,13 +381,18 @@ def correct_replay(
         ``"state_value"``: ``V(s_t)``,
         ``"loss_weight"`` ``[S, L]``: ``min(rho_clip, pi_k / mu) * replay_mask``, 0 at bootstrap points.
     """
-    _require(replay, ["action", "action_log_prob", REPLAY_MASK_KEY, *_next_keys(reward_key)], "correct_replay",
-             " (sample it from a SuccessBuffer filled through replay_sequences)")
+    _require(
+        replay,
+        ["action", "action_log_prob", REPLAY_MASK_KEY, *_next_keys(reward_key)],
+        "correct_replay",
+        " (sample it from a SuccessBuffer filled through replay_sequences)",
+    )
     if replay.ndim != 2:
         raise ValueError(f"correct_replay: expected sequences [S, L], got batch size {tuple(replay.shape)}")
     if not (0.0 < gamma <= 1.0) or not rho_clip > 0.0:
-        raise ValueError(f"correct_replay: need 0 < gamma <= 1 and rho_clip > 0, got gamma={gamma}, "
-                         f"rho_clip={rho_clip}")
+        raise ValueError(
+            f"correct_replay: need 0 < gamma <= 1 and rho_clip > 0, got gamma={gamma}, rho_clip={rho_clip}"
+        )
     S, L = replay.shape
     out = replay.copy()
     stored = replay.get("action_log_prob")
@@ -376,10 +413,14 @@ def correct_replay(
     out.set(LOSS_WEIGHT_KEY, weight)
     if logger.isEnabledFor(logging.DEBUG):  # host syncs: only when asked for
         ratio = (log_pi - log_mu).exp().squeeze(-1)[mask]
-        logger.debug("correct_replay: %d sequences, %d trained steps, pi_k/mu mean %.3f max %.3f, %.1f%% truncated",
-                     S, int(mask.sum()), float(ratio.mean()) if ratio.numel() else float("nan"),
-                     float(ratio.max()) if ratio.numel() else float("nan"),
-                     100.0 * float((ratio > rho_clip).float().mean()) if ratio.numel() else 0.0)
+        logger.debug(
+            "correct_replay: %d sequences, %d trained steps, pi_k/mu mean %.3f max %.3f, %.1f%% truncated",
+            S,
+            int(mask.sum()),
+            float(ratio.mean()) if ratio.numel() else float("nan"),
+            float(ratio.max()) if ratio.numel() else float("nan"),
+            100.0 * float((ratio > rho_clip).float().mean()) if ratio.numel() else 0.0,
+        )
     return out
 
 
@@ -401,11 +442,17 @@ def mix_minibatch(onpolicy: TensorDictBase, replay: TensorDictBase | None = None
     mixed.set(LOSS_WEIGHT_KEY, torch.ones(onpolicy.shape, device=onpolicy.device))
     if replay is None or replay.numel() == 0:
         return mixed
-    _require(replay, [*keys, LOSS_WEIGHT_KEY], "mix_minibatch (replayed sequences)",
-             " (replay must come from correct_replay on sequences with the on-policy entries)")
+    _require(
+        replay,
+        [*keys, LOSS_WEIGHT_KEY],
+        "mix_minibatch (replayed sequences)",
+        " (replay must come from correct_replay on sequences with the on-policy entries)",
+    )
     if replay.ndim != 2 or replay.shape[-1] != onpolicy.shape[-1]:
-        raise ValueError(f"mix_minibatch: replay batch {tuple(replay.shape)} does not match on-policy sequences "
-                         f"{tuple(onpolicy.shape)} (same sequence length needed)")
+        raise ValueError(
+            f"mix_minibatch: replay batch {tuple(replay.shape)} does not match on-policy sequences "
+            f"{tuple(onpolicy.shape)} (same sequence length needed)"
+        )
     mixed = torch.cat([mixed, replay.select(*keys, LOSS_WEIGHT_KEY).to(mixed.device)], 0)
     mixed.set(LOSS_MASK_KEY, mixed.get(LOSS_WEIGHT_KEY) > 0)
     return mixed
@@ -434,8 +481,10 @@ def weighted_ppo_loss(loss_td: TensorDictBase, weights: torch.Tensor) -> dict[st
         if x is None:
             continue
         if x.shape != w.shape:
-            raise ValueError(f"weighted_ppo_loss: {key} has shape {tuple(x.shape)} but the weights "
-                             f"{tuple(w.shape)}: build ClipPPOLoss with reduction='none'")
+            raise ValueError(
+                f"weighted_ppo_loss: {key} has shape {tuple(x.shape)} but the weights "
+                f"{tuple(w.shape)}: build ClipPPOLoss with reduction='none'"
+            )
         if key == "loss_critic":
             out[key] = torch.where(valid, x, torch.zeros_like(x)).sum() / valid.sum().clamp_min(1)
         else:
@@ -469,8 +518,10 @@ class SuccessReplay:
 
         success_fn = env_registry.get_adapter(cfg.env.adapter).success
         if success_fn is None:
-            raise ConfigError(f"success_buffer.enabled: the '{cfg.env.adapter}' adapter does not judge episode "
-                              "success (EnvAdapter.success is None); turn the buffer off")  # fmt: skip
+            raise ConfigError(
+                f"success_buffer.enabled: the '{cfg.env.adapter}' adapter does not judge episode "
+                "success (EnvAdapter.success is None); turn the buffer off"
+            )
         return cls(modules, cfg, success_fn, device, reward_key)
 
     def mix(self, onpolicy: TensorDictBase) -> TensorDictBase:
@@ -479,8 +530,14 @@ class SuccessReplay:
         mix = self.cfg.success_buffer.mix
         replay = self.buffer.sample(max(1, round(onpolicy.shape[0] * mix / (1 - mix))))
         if replay is not None:
-            replay = correct_replay(replay, log_prob_fn=self._log_prob, value_fn=self._value, gamma=self.cfg.ppo.gamma,
-                                    rho_clip=self.cfg.success_buffer.rho_clip, reward_key=self.reward_key)  # fmt: skip
+            replay = correct_replay(
+                replay,
+                log_prob_fn=self._log_prob,
+                value_fn=self._value,
+                gamma=self.cfg.ppo.gamma,
+                rho_clip=self.cfg.success_buffer.rho_clip,
+                reward_key=self.reward_key,
+            )
         return mix_minibatch(onpolicy, replay)
 
     @torch.no_grad()
@@ -499,6 +556,13 @@ class SuccessReplay:
         """Add the sequences of ``data [*B, T]`` that hold steps of successful episodes; returns the buffer size."""
         mask = success_step_mask(data, self.success_fn)
         if mask.any():
-            self.buffer.add(replay_sequences(data, mask, self.cfg.ppo.sequence_length,
-                                             drop=self.modules.trunk.out_keys, reward_key=self.reward_key))  # fmt: skip
+            self.buffer.add(
+                replay_sequences(
+                    data,
+                    mask,
+                    self.cfg.ppo.sequence_length,
+                    drop=self.modules.trunk.out_keys,
+                    reward_key=self.reward_key,
+                )
+            )
         return len(self.buffer)

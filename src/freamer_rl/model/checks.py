@@ -29,15 +29,21 @@ def check_model_shapes(cfg: Any) -> None:
         if d % h:
             raise ConfigError(f"model.embed_dim: got {d}, must be divisible by {name} ({h})")
     if m.fusion == "fno" and m.fno.modes > d // 2 + 1:
-        raise ConfigError(f"model.fno.modes: got {m.fno.modes}, must be <= model.embed_dim // 2 + 1 = {d // 2 + 1} "
-                          f"(the fuser's rfft runs along the {d} embedding entries)")  # fmt: skip
+        raise ConfigError(
+            f"model.fno.modes: got {m.fno.modes}, must be <= model.embed_dim // 2 + 1 = {d // 2 + 1} "
+            f"(the fuser's rfft runs along the {d} embedding entries)"
+        )
     cells = _MINIGRID_VIEW_CELLS
     if "state" in mods and "state" not in m.observation_keys and m.state.modes > cells // 2 + 1:
-        raise ConfigError(f"model.state.modes: got {m.state.modes}, must be <= {cells // 2 + 1} (the rfft modes "
-                          f"of the {cells} cells of the 7x7 view)")  # fmt: skip
+        raise ConfigError(
+            f"model.state.modes: got {m.state.modes}, must be <= {cells // 2 + 1} (the rfft modes "
+            f"of the {cells} cells of the 7x7 view)"
+        )
     if "reward" in mods and "reward" not in m.observation_keys and cfg.env.reward_history == 0:
-        raise ConfigError("env.reward_history: got 0 (no reward history), but model.modalities includes reward; "
-                          "use env.reward_history >= 1")  # fmt: skip
+        raise ConfigError(
+            "env.reward_history: got 0 (no reward history), but model.modalities includes reward; "
+            "use env.reward_history >= 1"
+        )
 
 
 def check_model_names(model: Any) -> None:
@@ -62,20 +68,29 @@ def check_model_names(model: Any) -> None:
         raise ConfigError(f"model.vision.backbone: expected 'cnn' or 'clip', got {model.vision.backbone!r}")
     for m in model.flow.gate_init:
         if m not in MODALITIES and m != "fused":
-            raise ConfigError(f"model.flow.gate_init: unknown modality '{m}' (known: {', '.join(MODALITIES)}, and "
-                              "fused for model.flow.placement=post)")  # fmt: skip
+            raise ConfigError(
+                f"model.flow.gate_init: unknown modality '{m}' (known: {', '.join(MODALITIES)}, and "
+                "fused for model.flow.placement=post)"
+            )
     if model.flow.placement not in PLACEMENTS:
-        raise ConfigError(f"model.flow.placement: expected one of {', '.join(PLACEMENTS)}, got "
-                          f"{model.flow.placement!r}")  # fmt: skip
+        raise ConfigError(
+            f"model.flow.placement: expected one of {', '.join(PLACEMENTS)}, got {model.flow.placement!r}"
+        )
     if model.fusion not in FUSIONS:
         raise ConfigError(f"model.fusion: expected one of {', '.join(FUSIONS)}, got {model.fusion!r}")
     if model.fusion_hidden is not None and model.fusion != "concat":
-        raise ConfigError(f"model.fusion_hidden: got {model.fusion_hidden}, but only model.fusion=concat has an MLP "
-                          f"(model.fusion is {model.fusion!r}); leave it unset")  # fmt: skip
+        raise ConfigError(
+            f"model.fusion_hidden: got {model.fusion_hidden}, but only model.fusion=concat has an MLP "
+            f"(model.fusion is {model.fusion!r}); leave it unset"
+        )
     steps = model.flow.adaptive_steps
     if any(not 1 <= s <= _MAX_ADAPTIVE_STEPS for s in steps) or len(set(steps)) != len(steps):
-        raise ConfigError(f"model.flow.adaptive_steps: got {steps}, expected distinct step counts in "
-                          f"[1, {_MAX_ADAPTIVE_STEPS}] (paper: [1, 2, 3, 5, 7, 10]; [] = fixed model.flow.steps)")
+        raise ConfigError(
+            f"model.flow.adaptive_steps: got {steps}, expected distinct step counts in "
+            f"[1, {_MAX_ADAPTIVE_STEPS}] (paper: [1, 2, 3, 5, 7, 10]; [] = fixed model.flow.steps)"
+        )
     if len(steps) == 1:
-        raise ConfigError(f"model.flow.adaptive_steps: got {steps}: give two or more choices, or set "
-                          "model.flow.steps and leave adaptive_steps empty")  # fmt: skip
+        raise ConfigError(
+            f"model.flow.adaptive_steps: got {steps}: give two or more choices, or set "
+            "model.flow.steps and leave adaptive_steps empty"
+        )

@@ -125,12 +125,33 @@ class AuxConfig:
 
 
 MODEL_RANGES: dict[str, Range] = {
-    **{f"model.{k}": size_range(WIDTH_LIMIT) for k in (
-        "embed_dim", "head_hidden", "fusion_hidden", "vector.hidden", "flow.hidden", "state.channels",
-        "reward.channels", "dnc.memory_slots", "dnc.memory_width", "vision.num_slots", "language.num_slots")},
-    **{f"model.{k}": size_range(LAYERS_LIMIT) for k in ("flow.steps", "language.layers", "language.heads",
-                                                          "cross_modal_heads", "vision.slot_iters",
-                                                          "language.slot_iters")},
+    **{
+        f"model.{k}": size_range(WIDTH_LIMIT)
+        for k in (
+            "embed_dim",
+            "head_hidden",
+            "fusion_hidden",
+            "vector.hidden",
+            "flow.hidden",
+            "state.channels",
+            "reward.channels",
+            "dnc.memory_slots",
+            "dnc.memory_width",
+            "vision.num_slots",
+            "language.num_slots",
+        )
+    },
+    **{
+        f"model.{k}": size_range(LAYERS_LIMIT)
+        for k in (
+            "flow.steps",
+            "language.layers",
+            "language.heads",
+            "cross_modal_heads",
+            "vision.slot_iters",
+            "language.slot_iters",
+        )
+    },
     "model.flow.noise_std": (NON_NEGATIVE, ">= 0"),
     "model.flow.adaptive_tau": (POSITIVE, "> 0"),
     "aux.lambda_fm": (NON_NEGATIVE, ">= 0"),
@@ -139,6 +160,6 @@ MODEL_RANGES: dict[str, Range] = {
 }
 
 #: ``ppo.*`` keys of earlier releases that moved to ``aux``.
-AUX_RENAMED: dict[str, str] = {f"ppo.{k}": f"aux.{k}" for k in
-                               ("lambda_fm", "lambda_cl", "lambda_smooth", "smooth_into_encoders")}
-
+AUX_RENAMED: dict[str, str] = {
+    f"ppo.{k}": f"aux.{k}" for k in ("lambda_fm", "lambda_cl", "lambda_smooth", "smooth_into_encoders")
+}

@@ -25,23 +25,23 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
-from tensordict.nn import TensorDictSequential
 from tensordict import unravel_key
+from tensordict.nn import TensorDictSequential
 from tensordict.utils import NestedKey
 from torch import nn
 from torchrl.data import Composite
 from torchrl.modules import ActorValueOperator, ProbabilisticActor, ValueOperator
 
 from freamer_rl.errors import EnvSetupError
-from freamer_rl.model.config import ModelConfig
-from freamer_rl.model.heads import action_kind, build_actor, build_critic
 from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention, SlotPool
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
-from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
 from freamer_rl.layers.tdmodule import KeyedModule
+from freamer_rl.model.config import ModelConfig
+from freamer_rl.model.heads import action_kind, build_actor, build_critic
+from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
 
 logger = logging.getLogger(__name__)
 
@@ -123,7 +123,9 @@ class FreamerModules:
         return out
 
 
-def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, env_name: str = "the env") -> FreamerModules:
+def build_freamer(
+    observation_spec: Composite, action_spec, cfg: ModelConfig, env_name: str = "the env"
+) -> FreamerModules:
     """Assemble the FreamerV1 TensorDictSequential from unbatched env specs and a model config.
 
     Modalities come from :data:`freamer_rl.model.modalities.MODALITIES` (keys remapped by ``cfg.observation_keys``); the
@@ -137,16 +139,27 @@ def build_freamer(observation_spec: Composite, action_spec, cfg: ModelConfig, en
 
     # Layers 2-4: flow-matching refiners, FNO fusion, DNC memory (the shared trunk builder).
     layers, refiners, fuser, dnc = build_filter_mix_memory(
-        modalities, d, flow_hidden=cfg.flow.hidden, flow_steps=cfg.flow.steps,
+        modalities,
+        d,
+        flow_hidden=cfg.flow.hidden,
+        flow_steps=cfg.flow.steps,
         flow_adaptive_steps=tuple(getattr(cfg.flow, "adaptive_steps", None) or ()) or None,
         flow_tau=float(getattr(cfg.flow, "adaptive_tau", 1.0)),
-        gate_init={**{m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
-                   "fused": cfg.flow.gate_init.get("fused", FUSED_GATE_INIT)},
-        placement=cfg.flow.placement, fusion=cfg.fusion, fusion_hidden=cfg.fusion_hidden,
-        fno_modes=cfg.fno.modes, fno_residual_scale=cfg.fno.residual_scale, fno_output_norm=cfg.fno.output_norm,
-        dnc=cfg.dnc.enabled, memory_slots=cfg.dnc.memory_slots, memory_width=cfg.dnc.memory_width,
+        gate_init={
+            **{m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
+            "fused": cfg.flow.gate_init.get("fused", FUSED_GATE_INIT),
+        },
+        placement=cfg.flow.placement,
+        fusion=cfg.fusion,
+        fusion_hidden=cfg.fusion_hidden,
+        fno_modes=cfg.fno.modes,
+        fno_residual_scale=cfg.fno.residual_scale,
+        fno_output_norm=cfg.fno.output_norm,
+        dnc=cfg.dnc.enabled,
+        memory_slots=cfg.dnc.memory_slots,
+        memory_width=cfg.dnc.memory_width,
         compile=cfg.compile,
-    )  # fmt: skip
+    )
     steps.extend(layers)
     trunk = TensorDictSequential(*steps)
 
@@ -230,8 +243,9 @@ def build_filter_mix_memory(
         :class:`~freamer_rl.layers.dnc.DNCModule` (``None`` when ``dnc=False``).
     """
     if placement not in PLACEMENTS or fusion not in FUSIONS:
-        raise ValueError(f"placement must be one of {PLACEMENTS} and fusion one of {FUSIONS}; got {placement!r}, "
-                         f"{fusion!r}")  # fmt: skip
+        raise ValueError(
+            f"placement must be one of {PLACEMENTS} and fusion one of {FUSIONS}; got {placement!r}, {fusion!r}"
+        )
     refined = list(modalities) if placement == "pre" else ["fused"] if placement == "post" else []
     missing = [m for m in refined if m not in gate_init]
     if missing:
@@ -240,8 +254,14 @@ def build_filter_mix_memory(
     steps: list[nn.Module] = []
     refiners = nn.ModuleDict()
     for m in refined:
-        refiners[m] = FlowMatchingRefiner(dim=dim, hidden=flow_hidden, steps=flow_steps, gate_init=gate_init[m],
-                                          adaptive_steps=flow_adaptive_steps, tau=flow_tau)  # fmt: skip
+        refiners[m] = FlowMatchingRefiner(
+            dim=dim,
+            hidden=flow_hidden,
+            steps=flow_steps,
+            gate_init=gate_init[m],
+            adaptive_steps=flow_adaptive_steps,
+            tau=flow_tau,
+        )
     stack_in = [("refined", m) for m in modalities] if placement == "pre" else [("embed", m) for m in modalities]
     for m in modalities if placement == "pre" else []:
         steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
@@ -253,13 +273,22 @@ def build_filter_mix_memory(
         steps.append(KeyedModule(refiners["fused"], in_keys=[fused_key], out_keys=["fused"]))
     memory = None
     if dnc:
-        memory = DNCModule(input_dim=dim, memory_slots=memory_slots, memory_width=memory_width, output_dim=d_out,
-                           in_key="fused", out_key=out_key, memory_key=memory_key, is_init_key=is_init_key,
-                           compile=compile)  # fmt: skip
+        memory = DNCModule(
+            input_dim=dim,
+            memory_slots=memory_slots,
+            memory_width=memory_width,
+            output_dim=d_out,
+            in_key="fused",
+            out_key=out_key,
+            memory_key=memory_key,
+            is_init_key=is_init_key,
+            compile=compile,
+        )
         steps.append(memory)
     else:
-        steps.append(KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"],
-                                      out_keys=[out_key]))  # fmt: skip
+        steps.append(
+            KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"], out_keys=[out_key])
+        )
     return steps, refiners, fuser, memory
 
 
@@ -271,8 +300,9 @@ PLACEMENTS = ("pre", "post", "off")
 FUSIONS = ("fno", "concat", "mean")
 
 
-def _build_fuser(fusion: str, m: int, d: int, modes: int, residual_scale: float, output_norm: bool,
-                 hidden: int | None) -> nn.Module:
+def _build_fuser(
+    fusion: str, m: int, d: int, modes: int, residual_scale: float, output_norm: bool, hidden: int | None
+) -> nn.Module:
     if fusion == "fno":
         return FNOFuser(num_modalities=m, dim=d, modes=modes, residual_scale=residual_scale, output_norm=output_norm)
     if fusion == "concat":
@@ -292,8 +322,11 @@ def _layer1_encoders(observation_spec: Composite, cfg: ModelConfig) -> list[nn.M
         encoder = KeyedModule(entry.build_encoder(ctx), in_keys=list(keys), out_keys=[out_key])
         if m in cfg.freeze_encoders:
             encoder.requires_grad_(False)  # the CLIP tower is frozen regardless
-            logger.info("model.freeze_encoders: the %s encoder is frozen (%d parameters)", m,
-                        sum(p.numel() for p in encoder.parameters()))
+            logger.info(
+                "model.freeze_encoders: the %s encoder is frozen (%d parameters)",
+                m,
+                sum(p.numel() for p in encoder.parameters()),
+            )
         steps.append(encoder)
         if entry.kind == "slots":
             slot_mods.append(m)

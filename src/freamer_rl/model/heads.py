@@ -63,7 +63,11 @@ def build_actor(action_spec, in_dim: int, hidden: int, in_key="hidden") -> Proba
         dist = torch.distributions.Categorical if kind == "categorical" else OneHotCategorical
         return ProbabilisticActor(
             KeyedModule(net, in_keys=[in_key], out_keys=["logits"]),
-            in_keys=["logits"], out_keys=["action"], spec=action_spec, distribution_class=dist, return_log_prob=True,
+            in_keys=["logits"],
+            out_keys=["action"],
+            spec=action_spec,
+            distribution_class=dist,
+            return_log_prob=True,
         )
     shape = tuple(action_spec.shape)
     n = int(torch.Size(shape).numel())
@@ -77,8 +81,12 @@ def build_actor(action_spec, in_dim: int, hidden: int, in_key="hidden") -> Proba
         kwargs = {"event_dim": len(shape)}
     return ProbabilisticActor(
         KeyedModule(net, in_keys=[in_key], out_keys=["loc", "scale"]),
-        in_keys=["loc", "scale"], out_keys=["action"], spec=action_spec, distribution_class=dist,
-        distribution_kwargs=kwargs, return_log_prob=True,
+        in_keys=["loc", "scale"],
+        out_keys=["action"],
+        spec=action_spec,
+        distribution_class=dist,
+        distribution_kwargs=kwargs,
+        return_log_prob=True,
     )
 
 

@@ -127,8 +127,10 @@ class FreamerAuxLoss(LossModule):
         """``td[key]``, or a ``KeyError`` naming the key (it is written by a trunk pass on this tensordict)."""
         value = td.get(key, None)
         if value is None:
-            raise KeyError(f"FreamerAuxLoss: {key!r} is missing from the tensordict; run the trunk on it first "
-                           "(or give the loss trunk=)")  # fmt: skip
+            raise KeyError(
+                f"FreamerAuxLoss: {key!r} is missing from the tensordict; run the trunk on it first "
+                "(or give the loss trunk=)"
+            )
         return value
 
     def forward(self, td: TensorDictBase) -> TensorDict:
@@ -142,9 +144,11 @@ class FreamerAuxLoss(LossModule):
                 out[f"fm_{m}"] = v.detach()
             out["loss_fm"] = self.lambda_fm * torch.stack(list(per_mod.values())).mean()
         if self.lambda_cl and "vision" in self.modalities and "language" in self.modalities:
-            v, l = self._embed(td, "vision"), self._embed(td, "language")
+            v, lang = self._embed(td, "vision"), self._embed(td, "language")
             zero = torch.zeros((), device=v.device)
-            out["loss_cl"] = self.lambda_cl * info_nce(v, l, self.temperature) if v.numel() // v.shape[-1] > 1 else zero
+            out["loss_cl"] = (
+                self.lambda_cl * info_nce(v, lang, self.temperature) if v.numel() // v.shape[-1] > 1 else zero
+            )
         if self.lambda_smooth:
             if self.smooth_fuser is not None:
                 rows = self.smooth_fuser(self._get(td, keys.modal_stack).detach())[1]

@@ -15,8 +15,9 @@ A recipe maps an env's own observation keys onto a modality with ``model.observa
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Callable
+from typing import TYPE_CHECKING
 
 import torch
 from torch import nn
@@ -37,7 +38,7 @@ class EncoderContext:
     name: str
     keys: tuple[str, ...]
     specs: tuple  # unbatched TensorSpecs, one per key
-    cfg: "ModelConfig"
+    cfg: ModelConfig
 
 
 @dataclass(frozen=True)
@@ -115,14 +116,19 @@ def _check_pixels(modality: str, key: str, spec) -> None:
 def _state_encoder(ctx: EncoderContext) -> nn.Module:
     grid_spec = ctx.specs[0]
     return StateFNOEncoder(
-        out_dim=ctx.cfg.embed_dim, channels=ctx.cfg.state.channels, modes=ctx.cfg.state.modes,
-        view_size=int(grid_spec.shape[0]), compile=ctx.cfg.compile,
+        out_dim=ctx.cfg.embed_dim,
+        channels=ctx.cfg.state.channels,
+        modes=ctx.cfg.state.modes,
+        view_size=int(grid_spec.shape[0]),
+        compile=ctx.cfg.compile,
     )
 
 
 def _reward_encoder(ctx: EncoderContext) -> nn.Module:
     return RewardEncoder(
-        history=int(ctx.specs[0].shape[-1]), out_dim=ctx.cfg.embed_dim, channels=ctx.cfg.reward.channels,
+        history=int(ctx.specs[0].shape[-1]),
+        out_dim=ctx.cfg.embed_dim,
+        channels=ctx.cfg.reward.channels,
         kernel=ctx.cfg.reward.kernel,
     )
 
@@ -138,15 +144,22 @@ def spec_vocab_size(key: str, spec) -> int:
     if high is None:
         high = getattr(getattr(spec, "space", None), "high", None)
     if high is None:
-        raise EnvSetupError(f"observation '{key}' has no bounded spec ({type(spec).__name__}): cannot size the vocabulary")
+        raise EnvSetupError(
+            f"observation '{key}' has no bounded spec ({type(spec).__name__}): cannot size the vocabulary"
+        )
     return int(torch.as_tensor(high).max()) + 1
 
 
 def _language_encoder(ctx: EncoderContext) -> nn.Module:
     c = ctx.cfg.language
     return LanguageEncoder(
-        vocab_size=spec_vocab_size(ctx.keys[0], ctx.specs[0]), out_dim=ctx.cfg.embed_dim, num_slots=c.num_slots,
-        layers=c.layers, heads=c.heads, max_len=int(ctx.specs[0].shape[-1]), slot_iters=c.slot_iters,
+        vocab_size=spec_vocab_size(ctx.keys[0], ctx.specs[0]),
+        out_dim=ctx.cfg.embed_dim,
+        num_slots=c.num_slots,
+        layers=c.layers,
+        heads=c.heads,
+        max_len=int(ctx.specs[0].shape[-1]),
+        slot_iters=c.slot_iters,
     )
 
 
@@ -158,7 +171,9 @@ def _vision_encoder(ctx: EncoderContext) -> nn.Module:
         from freamer_rl.layers.clip_backbone import ClipBackbone  # optional dependency (open_clip)
 
         backbone = ClipBackbone(
-            model_name=c.clip_model, pretrained=c.clip_pretrained, checkpoint_path=c.clip_checkpoint,
+            model_name=c.clip_model,
+            pretrained=c.clip_pretrained,
+            checkpoint_path=c.clip_checkpoint,
             allow_random_weights=c.allow_random_weights,
         )
     return VisionEncoder(backbone, out_dim=ctx.cfg.embed_dim, num_slots=c.num_slots, slot_iters=c.slot_iters)
@@ -187,7 +202,7 @@ def modality_keys(name: str, observation_keys: dict[str, list[str]] | None = Non
     return tuple(mapped) if mapped else MODALITIES[name].default_keys
 
 
-def check_observation_keys(observation_spec, cfg: "ModelConfig", env_name: str = "the env") -> None:
+def check_observation_keys(observation_spec, cfg: ModelConfig, env_name: str = "the env") -> None:
     """Raise :class:`EnvSetupError` naming the first modality key the env lacks or whose spec does not fit."""
     available = set(observation_spec.keys(True, True))
     for m in cfg.modalities:

@@ -15,6 +15,7 @@ from freamer_rl.run.params import parameter_rows
 
 __all__ = ["parameter_table"]
 
+
 def parameter_table(modules: FreamerModules) -> list[dict]:
     """Rows ``{"component", "trainable", "frozen"}`` in the paper's order, then a ``Total`` row."""
     groups: dict[str, list[nn.Module]] = {}

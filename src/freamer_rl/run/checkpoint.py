@@ -66,7 +66,6 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)  # mkstemp creates 0600 files; checkpoints get the permissions an ordinary open() would give
 
 
-
 # ----------------------------------------------------------------------------------------------------------------------
 # payload conversion
 # ----------------------------------------------------------------------------------------------------------------------
@@ -392,8 +391,9 @@ def _section(config: dict, dotted: str) -> Any:
     return node
 
 
-def structural_differences(saved: dict, current: dict, structural: tuple[str, ...],
-                           defaults: dict | None = None) -> list[str]:
+def structural_differences(
+    saved: dict, current: dict, structural: tuple[str, ...], defaults: dict | None = None
+) -> list[str]:
     """``"name: checkpoint X vs now Y"`` for every difference of the ``structural`` entries (sections such as
     ``model``, or single fields such as ``dreamer.deter``) between a saved config mapping and the current one.
     ``defaults`` (the schema's default mapping) fills fields a later release added into the saved sections: a
@@ -411,8 +411,9 @@ def structural_differences(saved: dict, current: dict, structural: tuple[str, ..
     return diffs
 
 
-def check_checkpoint_config(saved: dict, current: dict, path: Path, structural: tuple[str, ...],
-                            defaults: dict | None = None) -> None:
+def check_checkpoint_config(
+    saved: dict, current: dict, path: Path, structural: tuple[str, ...], defaults: dict | None = None
+) -> None:
     """CheckpointError when a ``structural`` entry differs (the weights would not fit or mean something else);
     a trainer declares its structural sections in its registry entry."""
     if not isinstance(saved, dict):

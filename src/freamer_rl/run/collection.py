@@ -23,8 +23,16 @@ __all__ = ["make_collector"]
 logger = logging.getLogger(__name__)
 
 
-def make_collector(section: Any, env_fns: Sequence[Callable[[], Any]], policy: Any, *, frames_per_batch: int,
-                   total_frames: int, devices: dict[str, Any], sync: bool = True) -> Any:
+def make_collector(
+    section: Any,
+    env_fns: Sequence[Callable[[], Any]],
+    policy: Any,
+    *,
+    frames_per_batch: int,
+    total_frames: int,
+    devices: dict[str, Any],
+    sync: bool = True,
+) -> Any:
     """A TorchRL collector over ``env_fns`` (one per worker; ``len(env_fns) == section.num_collectors``).
 
     Args:
@@ -36,21 +44,31 @@ def make_collector(section: Any, env_fns: Sequence[Callable[[], Any]], policy: A
         sync: several workers: synchronous batches (PPO) or asynchronous ones (IMPALA).
     """
     if len(env_fns) != section.num_collectors:
-        raise ValueError(f"make_collector: {len(env_fns)} env factories for collector.num_collectors="
-                         f"{section.num_collectors}")  # fmt: skip
+        raise ValueError(
+            f"make_collector: {len(env_fns)} env factories for collector.num_collectors={section.num_collectors}"
+        )
     if getattr(section, "backend", "local") == "ray":
         # the actors run on the CPU; check_ray_backend refuses a policy elsewhere, so `devices` is all CPU here
-        return _ray_collector(section, env_fns, policy, frames_per_batch=frames_per_batch, total_frames=total_frames,
-                              sync=sync)  # fmt: skip
-    common = dict(frames_per_batch=frames_per_batch, total_frames=total_frames,
-                  auto_register_policy_transforms=False, **devices)  # fmt: skip
+        return _ray_collector(
+            section, env_fns, policy, frames_per_batch=frames_per_batch, total_frames=total_frames, sync=sync
+        )
+    common = dict(
+        frames_per_batch=frames_per_batch, total_frames=total_frames, auto_register_policy_transforms=False, **devices
+    )
     if section.num_collectors == 1:
         return Collector(env_fns[0], policy, **common)
     return Collector(list(env_fns), policy, num_collectors=section.num_collectors, sync=sync, **common)
 
 
-def _ray_collector(section: Any, env_fns: Sequence[Callable[[], Any]], policy: Any, *, frames_per_batch: int,
-                   total_frames: int, sync: bool) -> Any:
+def _ray_collector(
+    section: Any,
+    env_fns: Sequence[Callable[[], Any]],
+    policy: Any,
+    *,
+    frames_per_batch: int,
+    total_frames: int,
+    sync: bool,
+) -> Any:
     """TorchRL's Ray collector: one remote ``Collector`` actor per env factory, on CPU.
 
     Batch layout, as the local backend's: one collector gives ``[num_envs, T]``; with ``sync`` several give
@@ -70,18 +88,29 @@ def _ray_collector(section: Any, env_fns: Sequence[Callable[[], Any]], policy: A
         # it asks for the next batch only after the trainer's update_policy_weights_(), so the weights are current
         sync = False
     collector = Collector(
-        list(env_fns), policy, backend="ray", num_collectors=section.num_collectors, sync=sync,
-        frames_per_batch=frames_per_batch, total_frames=total_frames,
+        list(env_fns),
+        policy,
+        backend="ray",
+        num_collectors=section.num_collectors,
+        sync=sync,
+        frames_per_batch=frames_per_batch,
+        total_frames=total_frames,
         backend_options={
-            "policy_device": "cpu", "env_device": "cpu", "storing_device": "cpu",
+            "policy_device": "cpu",
+            "env_device": "cpu",
+            "storing_device": "cpu",
             "collector_kwargs": {"auto_register_policy_transforms": False},
             "remote_configs": {"num_cpus": section.ray_collector_cpus, "num_gpus": 0},
         },
-    )  # fmt: skip
+    )
     # push the current weights now: the actors start from them and iterating does not warn about a lazy first sync
     collector.update_policy_weights_()
-    logger.info("Ray collection: %d actor(s) (%s) on %s", section.num_collectors, "sync" if sync else "async",
-                ray.get_runtime_context().gcs_address)  # fmt: skip
+    logger.info(
+        "Ray collection: %d actor(s) (%s) on %s",
+        section.num_collectors,
+        "sync" if sync else "async",
+        ray.get_runtime_context().gcs_address,
+    )
     return collector
 
 
@@ -89,13 +118,11 @@ def _init_ray(section: Any) -> None:
     """Start or join Ray as ``collector.ray_address`` says; ConfigError when the actors would not fit."""
     import ray
 
-
     if not ray.is_initialized():
         # a Ray instance started here lives until this process exits (later runs in the process reuse it). The
         # actors' own output (TorchRL's reprs, one per actor) stays in Ray's log folder unless we log at DEBUG.
         verbose = logger.isEnabledFor(logging.DEBUG)
-        kwargs: dict[str, Any] = {"address": section.ray_address, "include_dashboard": False,
-                                  "log_to_driver": verbose}  # fmt: skip
+        kwargs: dict[str, Any] = {"address": section.ray_address, "include_dashboard": False, "log_to_driver": verbose}
         if section.ray_address is None:
             kwargs["num_cpus"] = section.ray_num_cpus
         ray.init(**kwargs)

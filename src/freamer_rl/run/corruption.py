@@ -26,7 +26,6 @@ corrupted alike; a partial reset changes only the state of the envs it resets.
 from __future__ import annotations
 
 import math
-from typing import Any
 
 import torch
 from tensordict import TensorDictBase
@@ -94,16 +93,21 @@ class ModalityCorruption(Transform):
             raise ConfigError(f"{self.where}.key: the env has no observation {self.key!r} (it has {known})")
         spec = observation_spec[self.key]
         if self.kind in _INTEGER_ONLY and not _is_integer(spec.dtype):
-            raise ConfigError(f"{self.where}.kind: {self.kind} replaces integer entries, but {self.key!r} is "
-                              f"{spec.dtype}; use gaussian for float keys")  # fmt: skip
+            raise ConfigError(
+                f"{self.where}.kind: {self.kind} replaces integer entries, but {self.key!r} is "
+                f"{spec.dtype}; use gaussian for float keys"
+            )
         if self.kind in _FLOAT_OR_PIXELS and _is_integer(spec.dtype) and spec.dtype != torch.uint8:
-            raise ConfigError(f"{self.where}.kind: {self.kind} adds noise to float or uint8 pixel keys, but "
-                              f"{self.key!r} holds {spec.dtype} indices; use salt")  # fmt: skip
+            raise ConfigError(
+                f"{self.where}.kind: {self.kind} adds noise to float or uint8 pixel keys, but "
+                f"{self.key!r} holds {spec.dtype} indices; use salt"
+            )
         if _is_integer(spec.dtype):
             self._range = _spec_range(spec, self.where)
         if self.kind == "dropout":
-            observation_spec[self.present_key] = Unbounded((*spec.shape[: len(observation_spec.shape)], 1),
-                                                           device=spec.device, dtype=torch.float32)  # fmt: skip
+            observation_spec[self.present_key] = Unbounded(
+                (*spec.shape[: len(observation_spec.shape)], 1), device=spec.device, dtype=torch.float32
+            )
         return observation_spec
 
     # -- statistics ----------------------------------------------------------------------------------------------
@@ -116,8 +120,9 @@ class ModalityCorruption(Transform):
         bm, bv = float(x.mean()), float(x.var(unbiased=False))
         tot = n + k
         delta = bm - mean
-        self._stats = torch.tensor([tot, mean + delta * k / tot, m2 + bv * k + delta**2 * n * k / tot],
-                                   dtype=torch.float64)  # fmt: skip
+        self._stats = torch.tensor(
+            [tot, mean + delta * k / tot, m2 + bv * k + delta**2 * n * k / tot], dtype=torch.float64
+        )
 
     @property
     def running_std(self) -> float:
@@ -187,8 +192,11 @@ class ModalityCorruption(Transform):
         mask = tensordict.get("_reset", None) if tensordict is not None else None
         update = None if mask is None else mask.reshape(tuple(tensordict_reset.batch_size))
         if self._age is not None:  # an episode start refreshes a stale sensor
-            self._age = torch.where(update if update is not None else torch.ones_like(self._age, dtype=torch.bool),
-                                    torch.zeros_like(self._age), self._age)  # fmt: skip
+            self._age = torch.where(
+                update if update is not None else torch.ones_like(self._age, dtype=torch.bool),
+                torch.zeros_like(self._age),
+                self._age,
+            )
         return self._corrupt(tensordict_reset, update)
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
@@ -197,5 +205,8 @@ class ModalityCorruption(Transform):
 
 def corruption_transforms(entries: list, phase: str) -> list[ModalityCorruption]:
     """The ``env.corrupt`` entries that apply in ``phase`` (``train`` or ``eval``) as transforms, in order."""
-    return [ModalityCorruption(e.key, e.kind, e.level, where=f"env.corrupt[{i}]")
-            for i, e in enumerate(entries) if e.when in (phase, "both")]  # fmt: skip
+    return [
+        ModalityCorruption(e.key, e.kind, e.level, where=f"env.corrupt[{i}]")
+        for i, e in enumerate(entries)
+        if e.when in (phase, "both")
+    ]

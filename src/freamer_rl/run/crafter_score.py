@@ -154,11 +154,14 @@ class CrafterScore:
             raise ValueError(f"CrafterScore.load_state_dict: missing entries {sorted(missing)}")
         names, episodes, unlocked = tuple(state["names"]), int(state["episodes"]), [int(u) for u in state["unlocked"]]
         if names != self.names:
-            raise ValueError(f"CrafterScore.load_state_dict: saved for achievements {list(names)}, this score "
-                             f"tracks {list(self.names)}")  # fmt: skip
+            raise ValueError(
+                f"CrafterScore.load_state_dict: saved for achievements {list(names)}, this score "
+                f"tracks {list(self.names)}"
+            )
         if len(unlocked) != len(names) or episodes < 0 or any(not 0 <= u <= episodes for u in unlocked):
-            raise ValueError(f"CrafterScore.load_state_dict: inconsistent counts (episodes={episodes}, "
-                             f"unlocked={unlocked})")  # fmt: skip
+            raise ValueError(
+                f"CrafterScore.load_state_dict: inconsistent counts (episodes={episodes}, unlocked={unlocked})"
+            )
         self.episodes, self.unlocked = episodes, unlocked
 
     # -- report -------------------------------------------------------------------------------------------------
@@ -226,8 +229,15 @@ class CrafterScore:
         for y, r in zip(ys, rates):  # the value beside its bar, or inside a long one
             inside = r > 50.0
             x = (r / 1.15 if inside else max(r, left) * 1.15) if log_scale else (r - 1.0 if inside else r + 1.0)
-            ax.text(x, y, f"{r:.1f}", va="center", ha="right" if inside else "left", fontsize=7,
-                    color="white" if inside else "black")  # fmt: skip
+            ax.text(
+                x,
+                y,
+                f"{r:.1f}",
+                va="center",
+                ha="right" if inside else "left",
+                fontsize=7,
+                color="white" if inside else "black",
+            )
         ax.set_yticks(ys, [n.replace("_", " ") for n in self.names], fontsize=8)
         ax.set_xlabel("success rate (%)" + (", log scale" if log_scale else ""))
         ax.set_title(f"Crafter score {_fmt(self.score())} ({self.episodes} episodes)")

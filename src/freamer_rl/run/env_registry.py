@@ -52,6 +52,7 @@ class EnvAdapter:
     achievements: tuple[str, ...] = ()
     writes: tuple[str, ...] = ()
 
+
 ENTRY_POINT_GROUP = "freamer_rl.envs"
 
 

@@ -18,8 +18,15 @@ from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, St
 from freamer_rl.errors import ConfigError
 from freamer_rl.run import env_registry
 
-__all__ = ["ENV_WRITTEN", "check_env_writes", "import_env_modules", "env_options", "make_single_env",
-           "make_batched_env", "probe_specs"]
+__all__ = [
+    "ENV_WRITTEN",
+    "check_env_writes",
+    "import_env_modules",
+    "env_options",
+    "make_single_env",
+    "make_batched_env",
+    "probe_specs",
+]
 
 #: Config fields whose non-zero value asks the env for an entry that only some adapters compute (those listing it
 #: in ``EnvAdapter.writes``): dotted field -> (entry, what it is). A field a trainer's schema lacks asks for nothing.
@@ -42,8 +49,7 @@ def check_env_writes(cfg: Any) -> None:
     for dotted, (entry, what) in ENV_WRITTEN.items():
         value = _dotted(cfg, dotted)
         if value and entry not in adapter.writes:
-            able = [n for n in sorted(env_registry.available_adapters())
-                    if entry in env_registry.get_adapter(n).writes]  # fmt: skip
+            able = [n for n in sorted(env_registry.available_adapters()) if entry in env_registry.get_adapter(n).writes]
             raise ConfigError(
                 f"{dotted}: got {value}, but env.adapter '{cfg.env.adapter}' cannot provide {what} ('{entry}'); set "
                 f"{dotted}=0" + (f" or use env.adapter {' / '.join(able)}" if able else "")
@@ -57,7 +63,9 @@ def import_env_modules(env: Any) -> None:
         try:
             importlib.import_module(name)
         except ImportError as err:
-            raise ConfigError(f"env.imports: cannot import {name!r} ({err}); is it installed or on PYTHONPATH?") from None
+            raise ConfigError(
+                f"env.imports: cannot import {name!r} ({err}); is it installed or on PYTHONPATH?"
+            ) from None
 
 
 def env_options(cfg: Any) -> dict[str, Any]:

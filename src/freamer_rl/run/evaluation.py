@@ -37,9 +37,19 @@ def read_checkpoint_config(path: Path, schema: type) -> tuple[dict[str, Any], An
 
 
 @torch.no_grad()
-def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, deterministic: bool = False,
-                 num_envs: int | None = None, seed: int = 12345, max_steps: int = 100_000,
-                 corrupt: list | None = None, step_metrics: Any = None) -> dict[str, Any]:
+def run_episodes(
+    cfg: Any,
+    policy: Any,
+    primers: list,
+    *,
+    episodes: int = 20,
+    deterministic: bool = False,
+    num_envs: int | None = None,
+    seed: int = 12345,
+    max_steps: int = 100_000,
+    corrupt: list | None = None,
+    step_metrics: Any = None,
+) -> dict[str, Any]:
     """``episodes`` complete episodes of ``policy`` in the config's env (every trainer's evaluator uses this).
 
     The env is corrupted as ``corrupt`` says (``env.corrupt``-style entries), else as the config's ``env.corrupt``
@@ -53,8 +63,9 @@ def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, de
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     try:
         with set_exploration_type(mode):
-            per_env = _episodes_per_env(env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps,
-                                        step_metrics, means := LogMeans())  # fmt: skip
+            per_env = _episodes_per_env(
+                env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps, step_metrics, means := LogMeans()
+            )
     finally:
         env.close()
     # episode k of every env before episode k + 1 of any: choosing by finishing order would favour short episodes
@@ -75,8 +86,9 @@ def run_episodes(cfg: Any, policy: Any, primers: list, *, episodes: int = 20, de
     }
 
 
-def _episodes_per_env(env, policy, n_envs: int, quota: int, success_fn, max_steps: int, step_metrics=None,
-                      means: LogMeans | None = None) -> list[list[dict]]:
+def _episodes_per_env(
+    env, policy, n_envs: int, quota: int, success_fn, max_steps: int, step_metrics=None, means: LogMeans | None = None
+) -> list[list[dict]]:
     """The first ``quota`` episodes of each of the ``n_envs`` envs: ``{"return", "length", "success"}`` each
     (``success`` None without a success rule)."""
     per_env: list[list[dict]] = [[] for _ in range(n_envs)]
@@ -93,8 +105,13 @@ def _episodes_per_env(env, policy, n_envs: int, quota: int, success_fn, max_step
             succ = success_fn(nxt[done]).reshape(-1).tolist() if success_fn is not None else [None] * len(ended)
             for j, i in enumerate(ended):
                 if len(per_env[i]) < quota:
-                    per_env[i].append({"return": float(nxt["episode_reward"][i].reshape(-1)[0]),
-                                       "length": int(nxt["step_count"][i].reshape(-1)[0]), "success": succ[j]})
+                    per_env[i].append(
+                        {
+                            "return": float(nxt["episode_reward"][i].reshape(-1)[0]),
+                            "length": int(nxt["step_count"][i].reshape(-1)[0]),
+                            "success": succ[j],
+                        }
+                    )
         td = td_next
         if all(len(e) >= quota for e in per_env):
             break

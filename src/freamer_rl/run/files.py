@@ -1,11 +1,11 @@
 """The files every run directory holds, written the same way by every trainer (MiniGrid/gym PPO, health):
 
-    <run_dir>/config.yaml          the resolved config
-    <run_dir>/run_info.json        git commit (and whether the tree was dirty), versions, command, resumed_from
-    <run_dir>/metrics/attempt_NN/  the TorchRL logger of one start or resume, with the resolved config logged as
-                                   hyperparameters (one folder per attempt: an attempt killed after its last
-                                   checkpoint logged steps that the next attempt logs again; progress.csv is the
-                                   deduplicated record)
+<run_dir>/config.yaml          the resolved config
+<run_dir>/run_info.json        git commit (and whether the tree was dirty), versions, command, resumed_from
+<run_dir>/metrics/attempt_NN/  the TorchRL logger of one start or resume, with the resolved config logged as
+                               hyperparameters (one folder per attempt: an attempt killed after its last
+                               checkpoint logged steps that the next attempt logs again; progress.csv is the
+                               deduplicated record)
 """
 
 from __future__ import annotations
@@ -25,8 +25,8 @@ import torchrl
 import yaml
 from torchrl.record.loggers import get_logger
 
-from freamer_rl.run.checkpoint import atomic_write_text, run_file_errors
 from freamer_rl.errors import FreamerError
+from freamer_rl.run.checkpoint import atomic_write_text, run_file_errors
 from freamer_rl.run.rundir import next_attempt_name
 
 logger = logging.getLogger(__name__)
@@ -91,15 +91,17 @@ def make_metrics_logger(run_dir: Path, backend: str, config: dict, *, option: st
     if backend == "wandb":
         # wandb writes into its log_dir (torchrl passes it as wandb's `dir`): the attempt's folder, not the run dir
         log_dir = root / attempt
-        kwargs["wandb_kwargs"] = {"offline": os.environ.get("WANDB_MODE", "offline") == "offline",
-                                  "project": "freamer_rl"}  # fmt: skip
+        kwargs["wandb_kwargs"] = {
+            "offline": os.environ.get("WANDB_MODE", "offline") == "offline",
+            "project": "freamer_rl",
+        }
     try:
         with run_file_errors(log_dir):
             metrics = get_logger(backend, logger_name=str(log_dir), experiment_name=attempt, **kwargs)
     except ImportError as err:
         raise FreamerError(
             f"{option} '{backend}' needs an optional package: from a checkout, pip install -c constraints.txt -e "
-            f"\".[{backend}]\"; from PyPI, pip install \"freamer_rl[{backend}]\" ({err})"
+            f'".[{backend}]"; from PyPI, pip install "freamer_rl[{backend}]" ({err})'
         ) from err
     logger.info("metrics of this attempt: %s", root / attempt)
     metrics.log_hparams(flatten_config(config))

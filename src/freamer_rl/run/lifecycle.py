@@ -36,7 +36,11 @@ import torch
 
 from freamer_rl.errors import CheckpointError
 from freamer_rl.run.checkpoint import (
-    atomic_write_text, check_checkpoint_config, resume_checkpoint, run_file_errors, save_checkpoint,
+    atomic_write_text,
+    check_checkpoint_config,
+    resume_checkpoint,
+    run_file_errors,
+    save_checkpoint,
 )
 from freamer_rl.run.files import make_metrics_logger, write_run_files
 from freamer_rl.run.metrics import RETURN_SERIES, json_safe, plot_learning_curve, quiet_library_logs
@@ -61,9 +65,18 @@ class RunLifecycle:
             ``returns``, ``return_label``).
     """
 
-    def __init__(self, run_dir: str | Path, *, trainer_name: str, config: dict,
-                 read_checkpoint: Callable[[Path], dict], structural: tuple[str, ...], defaults: dict | None = None,
-                 title: str = "", curve: dict[str, Any] | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        run_dir: str | Path,
+        *,
+        trainer_name: str,
+        config: dict,
+        read_checkpoint: Callable[[Path], dict],
+        structural: tuple[str, ...],
+        defaults: dict | None = None,
+        title: str = "",
+        curve: dict[str, Any] | None = None,
+    ) -> None:
         self.t0 = time.perf_counter()  # first: start-up belongs to the run's wall time
         self.run_dir = Path(run_dir)
         self.trainer_name = trainer_name
@@ -92,8 +105,10 @@ class RunLifecycle:
             ckpt = self._read(path)
             saved = ckpt.get("trainer", self.trainer_name)  # checkpoints older than the entry: the format decides
             if saved != self.trainer_name:  # e.g. a PPO run folder resumed with an IMPALA recipe of the same network
-                raise CheckpointError(f"checkpoint {path} was written by trainer {saved!r}, this recipe's trainer is "
-                                      f"{self.trainer_name!r}; use another run directory")  # fmt: skip
+                raise CheckpointError(
+                    f"checkpoint {path} was written by trainer {saved!r}, this recipe's trainer is "
+                    f"{self.trainer_name!r}; use another run directory"
+                )
             check_checkpoint_config(ckpt.get("config"), self.config, path, self.structural, self.defaults)
         except BaseException:
             self.lock.release()
@@ -182,10 +197,16 @@ class RunLifecycle:
     def checkpoint(self, payload: dict[str, Any]) -> Path:
         """Save ``payload`` (the trainer's entries, with ``format`` and ``frames``) plus the common entries as the
         newest resume checkpoint (atomic, rotated), then redraw the learning curve."""
-        path = save_checkpoint(self.run_dir, {
-            **payload, "rows": self.rows, "wall_time": self.wall_time, "torch_rng": torch.get_rng_state(),
-            "trainer": self.trainer_name,  # freamer-rl eval dispatches on it (freamer_rl.trainers.registry)
-        })  # fmt: skip
+        path = save_checkpoint(
+            self.run_dir,
+            {
+                **payload,
+                "rows": self.rows,
+                "wall_time": self.wall_time,
+                "torch_rng": torch.get_rng_state(),
+                "trainer": self.trainer_name,  # freamer-rl eval dispatches on it (freamer_rl.trainers.registry)
+            },
+        )
         self.plot()
         return path
 

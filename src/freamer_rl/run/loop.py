@@ -81,10 +81,15 @@ class RunLoop:
         label = self.trainer_label or self.trainer_name
         # first: the run's wall time starts before the model is built (start-up and compiling count)
         self.life = RunLifecycle(
-            self.run_dir, trainer_name=self.trainer_name, config=config_to_dict(cfg), read_checkpoint=load_checkpoint,
-            structural=self.structural, defaults=config_to_dict(type(cfg)()),
-            title=f"{cfg.env.id} -- {label}, seed {cfg.run.seed}", curve={"window": cfg.logging.success_window},
-        )  # fmt: skip
+            self.run_dir,
+            trainer_name=self.trainer_name,
+            config=config_to_dict(cfg),
+            read_checkpoint=load_checkpoint,
+            structural=self.structural,
+            defaults=config_to_dict(type(cfg)()),
+            title=f"{cfg.env.id} -- {label}, seed {cfg.run.seed}",
+            curve={"window": cfg.logging.success_window},
+        )
         self.device = resolve_device(cfg.run.device)  # before any work: 'cuda' without a visible GPU is one line
         torch.set_num_threads(cfg.run.threads)
         torch.manual_seed(cfg.run.seed)
@@ -175,21 +180,25 @@ class RunLoop:
         logger.info("resumed from %s at %d frames, %d episodes", path, self.frames, self.stats.episodes)
 
     def _checkpoint(self) -> Path:
-        return self.life.checkpoint({
-            **self._model_state(),
-            "frames": self.frames,
-            "batches": self.batches,
-            "stats": self.stats.state_dict(),
-            "config": config_to_dict(self.cfg),
-            "achievements": self.achievements.state_dict() if self.achievements is not None else None,
-            "format": CHECKPOINT_FORMAT,
-        })  # fmt: skip
+        return self.life.checkpoint(
+            {
+                **self._model_state(),
+                "frames": self.frames,
+                "batches": self.batches,
+                "stats": self.stats.state_dict(),
+                "config": config_to_dict(self.cfg),
+                "achievements": self.achievements.state_dict() if self.achievements is not None else None,
+                "format": CHECKPOINT_FORMAT,
+            }
+        )
 
     # -- data -----------------------------------------------------------------------------------------------
     def _env_fns(self, seed: int) -> list:
         transforms = [*self._env_transforms(), *self._primers()]
-        return [functools.partial(make_batched_env, self.cfg, transforms, seed + 1000 * i)
-                for i in range(self.cfg.collector.num_collectors)]  # fmt: skip
+        return [
+            functools.partial(make_batched_env, self.cfg, transforms, seed + 1000 * i)
+            for i in range(self.cfg.collector.num_collectors)
+        ]
 
     def _planned_frames(self, remaining: int) -> int:
         """The frames the collector will deliver for ``remaining`` more: whole batches."""
@@ -199,9 +208,15 @@ class RunLoop:
         seed = self.cfg.run.seed * 10_000 + self.frames  # a resumed run does not replay the same episodes
         # envs step on the CPU; the policy runs on run.device and the batch is stored there for the learner
         devices = {"policy_device": self.device, "env_device": "cpu", "storing_device": self.device}
-        return make_collector(self.cfg.collector, self._env_fns(seed), self._policy(),
-                              frames_per_batch=self.frames_per_batch, total_frames=self._planned_frames(remaining),
-                              devices=devices, sync=self._collector_sync())  # fmt: skip
+        return make_collector(
+            self.cfg.collector,
+            self._env_fns(seed),
+            self._policy(),
+            frames_per_batch=self.frames_per_batch,
+            total_frames=self._planned_frames(remaining),
+            devices=devices,
+            sync=self._collector_sync(),
+        )
 
     # -- main -----------------------------------------------------------------------------------------------
     def train(self) -> dict[str, Any]:
@@ -219,16 +234,18 @@ class RunLoop:
         cfg = self.cfg
         remaining = cfg.run.total_frames - self.frames
         if remaining <= 0:
-            logger.info("run already has %d frames (run.total_frames=%d): nothing to do", self.frames,
-                        cfg.run.total_frames)
+            logger.info(
+                "run already has %d frames (run.total_frames=%d): nothing to do", self.frames, cfg.run.total_frames
+            )
             return self._finish()
         metrics_logger = self.life.metrics_logger(cfg.logging.backend, option="logging.backend")
         collector = self._make_collector(remaining)
         every = cfg.logging.checkpoint_every_frames
         next_ckpt = (self.frames // every + 1) * every
         # a tqdm bar on a terminal, else a plain log line every ~10 s; its total is what the collector will deliver
-        progress = ProgressReporter(self.frames + self._planned_frames(remaining), self.frames,
-                                    bar=cfg.logging.progress_bar)  # fmt: skip
+        progress = ProgressReporter(
+            self.frames + self._planned_frames(remaining), self.frames, bar=cfg.logging.progress_bar
+        )
         if self._compiling():
             logger.info("compiling the model (model.compile) during the first batches: they take longer")
         t_batch = time.perf_counter()
@@ -245,8 +262,9 @@ class RunLoop:
                 now = time.perf_counter()
                 row = self._batch_row(data.numel() / max(now - t_batch, 1e-9), losses)
                 t_batch = now
-                self.life.log_row(row, metrics_logger, self.frames,
-                                  to_logger=self.batches % cfg.logging.log_every_batches == 0)  # fmt: skip
+                self.life.log_row(
+                    row, metrics_logger, self.frames, to_logger=self.batches % cfg.logging.log_every_batches == 0
+                )
                 progress.update(self.frames, data.numel(), self.stats)
                 if self.frames >= next_ckpt:
                     self._checkpoint()
@@ -265,8 +283,11 @@ class RunLoop:
 
     def _should_stop(self) -> bool:
         target = self.cfg.run.stop_at_success
-        if target is not None and len(self.stats.recent_success) >= self.stats.window \
-                and self.stats.success_rate >= target:  # fmt: skip
+        if (
+            target is not None
+            and len(self.stats.recent_success) >= self.stats.window
+            and self.stats.success_rate >= target
+        ):
             logger.info("success rate %.3f >= run.stop_at_success: stopping", self.stats.success_rate)
             return True
         return self.frames >= self.cfg.run.total_frames
@@ -309,7 +330,13 @@ class RunLoop:
         fps = f" ({summary['fps']:.0f} frames/s)" if summary["fps"] else ""
         logger.info(
             "finished: %d frames, %d episodes | success %s, return %s (last %d episodes) | wall time %s%s | run dir %s",
-            self.frames, self.stats.episodes, format_rate(self.stats.success_rate), format_rate(self.stats.mean_return),
-            min(self.stats.episodes, self.stats.window), format_duration(wall), fps, self.run_dir,
-        )  # fmt: skip
+            self.frames,
+            self.stats.episodes,
+            format_rate(self.stats.success_rate),
+            format_rate(self.stats.mean_return),
+            min(self.stats.episodes, self.stats.window),
+            format_duration(wall),
+            fps,
+            self.run_dir,
+        )
         return summary

@@ -32,8 +32,16 @@ SUCCESS_TARGET = 0.95
 PROGRESS_LOG_INTERVAL_S = 10.0
 
 __all__ = [
-    "RETURN_SERIES", "SUCCESS_TARGET", "EpisodeStats", "LogMeans", "ProgressReporter", "format_duration", "format_rate",
-    "json_safe", "plot_learning_curve", "quiet_library_logs",
+    "RETURN_SERIES",
+    "SUCCESS_TARGET",
+    "EpisodeStats",
+    "LogMeans",
+    "ProgressReporter",
+    "format_duration",
+    "format_rate",
+    "json_safe",
+    "plot_learning_curve",
+    "quiet_library_logs",
 ]
 #: Loggers of libraries whose INFO lines (e.g. TorchRL's "Initialized LazyTensorStorage ...") are noise in a run log.
 NOISY_LIBRARY_LOGGERS = ("torchrl", "tensordict")
@@ -177,25 +185,37 @@ class ProgressReporter:
     batches); the shown share is capped at 100 % in any case. ``unit``: what ``frames`` counts.
     """
 
-    def __init__(self, total: int, initial: int, *, bar: bool, interval_s: float = PROGRESS_LOG_INTERVAL_S,
-                 desc: str | None = None) -> None:  # fmt: skip
+    def __init__(
+        self,
+        total: int,
+        initial: int,
+        *,
+        bar: bool,
+        interval_s: float = PROGRESS_LOG_INTERVAL_S,
+        desc: str | None = None,
+    ) -> None:
         self.total = max(int(total), int(initial), 1)
         self.interval_s = interval_s
         self._last_log: float | None = None
         self._frames_at_log, self._t_at_log = initial, time.perf_counter()
         self._pbar = None
         if bar and _is_terminal():
-            self._pbar = tqdm(total=self.total, initial=min(initial, self.total), unit="frames", desc=desc,
-                              dynamic_ncols=True)  # fmt: skip
+            self._pbar = tqdm(
+                total=self.total, initial=min(initial, self.total), unit="frames", desc=desc, dynamic_ncols=True
+            )
 
-    def update(self, frames: int, new_frames: int, stats: EpisodeStats | None = None,
-               extra: dict[str, str] | None = None) -> None:  # fmt: skip
+    def update(
+        self, frames: int, new_frames: int, stats: EpisodeStats | None = None, extra: dict[str, str] | None = None
+    ) -> None:
         """After a batch: ``frames`` trained on so far, ``new_frames`` of them from this batch; ``stats`` (episodes,
         success, return) and/or ``extra`` (name -> shown text) describe the run so far."""
         shown = {}
         if stats is not None:
-            shown = {"episodes": str(stats.episodes), "success": format_rate(stats.success_rate),
-                     "return": format_rate(stats.mean_return)}  # fmt: skip
+            shown = {
+                "episodes": str(stats.episodes),
+                "success": format_rate(stats.success_rate),
+                "return": format_rate(stats.mean_return),
+            }
         shown.update(extra or {})
         if self._pbar is not None:
             # a last batch may end past the planned total (a stop condition never does): never past 100 %
@@ -207,8 +227,14 @@ class ProgressReporter:
             return
         fps = (frames - self._frames_at_log) / max(now - self._t_at_log, 1e-9)
         details = "".join(f" | {k} {v}" for k, v in shown.items())
-        logger.info("frames %d/%d (%.0f%%) | %.0f frames/s%s", frames, self.total,
-                    min(100.0, 100.0 * frames / self.total), fps, details)  # fmt: skip
+        logger.info(
+            "frames %d/%d (%.0f%%) | %.0f frames/s%s",
+            frames,
+            self.total,
+            min(100.0, 100.0 * frames / self.total),
+            fps,
+            details,
+        )
         self._last_log = self._t_at_log = now
         self._frames_at_log = frames
 
@@ -239,8 +265,11 @@ def _recent_label(rows: list[dict], window: int | None) -> str:
 
 
 def _finite_points(rows: list[dict], key: str) -> tuple[list, list]:
-    pts = [(r["frames"], float(r[key])) for r in rows
-           if isinstance(r.get(key), (int, float)) and math.isfinite(float(r[key]))]  # fmt: skip
+    pts = [
+        (r["frames"], float(r[key]))
+        for r in rows
+        if isinstance(r.get(key), (int, float)) and math.isfinite(float(r[key]))
+    ]
     return ([p[0] for p in pts], [p[1] for p in pts]) if pts else ([], [])
 
 
@@ -248,9 +277,15 @@ def _finite_points(rows: list[dict], key: str) -> tuple[list, list]:
 RETURN_SERIES: tuple[tuple[str, str | None], ...] = (("return_mean", None),)
 
 
-def plot_learning_curve(rows: list[dict], path: Path, title: str = "", window: int | None = None, *,
-                        returns: tuple[tuple[str, str | None], ...] = RETURN_SERIES,
-                        return_label: str | None = None) -> None:  # fmt: skip
+def plot_learning_curve(
+    rows: list[dict],
+    path: Path,
+    title: str = "",
+    window: int | None = None,
+    *,
+    returns: tuple[tuple[str, str | None], ...] = RETURN_SERIES,
+    return_label: str | None = None,
+) -> None:
     """Success rate (last-``window`` episodes) over the return series vs frames, two stacked panels, one PNG.
 
     ``rows``: progress rows with ``frames``, optionally ``episodes`` and ``success_rate``, and the ``returns``
@@ -282,8 +317,11 @@ def plot_learning_curve(rows: list[dict], path: Path, title: str = "", window: i
         fig, ax_r = plt.subplots(1, 1, figsize=(7, 3.5))
         ax_r.set_title(title)
         has_any = any(math.isfinite(float(r.get("success_rate", math.nan))) for r in rows)
-        note = (f"success rate n/a: fewer than {window} episodes so far" if has_any
-                else "this env reports no success: return only")  # fmt: skip
+        note = (
+            f"success rate n/a: fewer than {window} episodes so far"
+            if has_any
+            else "this env reports no success: return only"
+        )
         ax_r.text(0.01, 0.97, note, transform=ax_r.transAxes, ha="left", va="top", fontsize=8, color="dimgrey")
     for key, label in returns:
         xs, ys = _finite_points(rows, key)

@@ -44,7 +44,12 @@ class StepStats:
         if now - self._last_warning >= _WARN_EVERY_S:
             logger.warning(
                 "%s: non-finite gradient norm (%s); update skipped (%d skipped since the last warning, %d of %d "
-                "steps in all)", self.name, grad_norm, self._unreported, self.skipped, self.steps,
+                "steps in all)",
+                self.name,
+                grad_norm,
+                self._unreported,
+                self.skipped,
+                self.steps,
             )
             self._last_warning = now
             self._unreported = 0
@@ -119,8 +124,9 @@ def set_lr(optimizer: torch.optim.Optimizer, lr: float, eps: float | None = None
             group["eps"] = eps
 
 
-def restore_optimizer(optimizer: torch.optim.Optimizer, state: dict, optim: Any, frames: int,
-                      total_frames: int) -> None:
+def restore_optimizer(
+    optimizer: torch.optim.Optimizer, state: dict, optim: Any, frames: int, total_frames: int
+) -> None:
     """Load a checkpoint's optimiser ``state`` on resume: Adam's moments are kept, the ``optim`` section of the
     current config sets lr (its schedule at ``frames``) and eps."""
     optimizer.load_state_dict(state)

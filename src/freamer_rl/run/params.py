@@ -10,9 +10,7 @@ from torch import nn
 __all__ = ["OFFLINE_NOTE", "count_parameters", "parameter_rows", "format_parameter_table"]
 
 #: Printed under the table by ``freamer-rl params``.
-OFFLINE_NOTE = (
-    "counted on a randomly initialised model of the same architecture: no weights were loaded or downloaded"
-)
+OFFLINE_NOTE = "counted on a randomly initialised model of the same architecture: no weights were loaded or downloaded"
 
 
 def count_parameters(module: nn.Module, seen: set[int]) -> tuple[int, int]:
@@ -44,8 +42,9 @@ def parameter_rows(parts: Mapping[str, nn.Module | Iterable[nn.Module]], rest: n
         t, f = count_parameters(rest, seen)
         if t or f:
             rows.append({"component": "Other (projections, stacking)", "trainable": t, "frozen": f})
-    rows.append({"component": "Total", "trainable": sum(r["trainable"] for r in rows),
-                 "frozen": sum(r["frozen"] for r in rows)})  # fmt: skip
+    rows.append(
+        {"component": "Total", "trainable": sum(r["trainable"] for r in rows), "frozen": sum(r["frozen"] for r in rows)}
+    )
     return rows
 
 
@@ -59,13 +58,17 @@ def format_parameter_table(rows: list[dict], markdown: bool = False) -> str:
     if markdown:
         lines += ["| Component | Trainable | Frozen | Total |", "|---|---:|---:|---:|"]
         for r in rows:
-            lines.append(f"| {r['component']} | {_fmt(r['trainable'])} | {_fmt(r['frozen'])} | "
-                         f"{_fmt(r['trainable'] + r['frozen'])} |")
+            lines.append(
+                f"| {r['component']} | {_fmt(r['trainable'])} | {_fmt(r['frozen'])} | "
+                f"{_fmt(r['trainable'] + r['frozen'])} |"
+            )
     else:
         lines.append(f"{'Component':40s} {'Trainable':>12s} {'Frozen':>12s} {'Total':>12s}")
         for r in rows:
-            lines.append(f"{r['component']:40s} {_fmt(r['trainable']):>12s} {_fmt(r['frozen']):>12s} "
-                         f"{_fmt(r['trainable'] + r['frozen']):>12s}")
+            lines.append(
+                f"{r['component']:40s} {_fmt(r['trainable']):>12s} {_fmt(r['frozen']):>12s} "
+                f"{_fmt(r['trainable'] + r['frozen']):>12s}"
+            )
     share = rows[-1]["trainable"] / total if total else 0.0
     lines.append(f"trainable share: {100 * share:.2f}%")
     return "\n".join(lines)

@@ -30,8 +30,8 @@ from pathlib import Path
 from typing import Any
 
 from freamer_rl.config.checks import run_name_problem
-from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.errors import FreamerError
+from freamer_rl.run.checkpoint import atomic_write_text
 
 try:
     import fcntl
@@ -41,8 +41,14 @@ except ImportError:  # Windows: no flock; runs are not locked there
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "LOCK_NAME", "RunDirLock", "Terminated", "catch_sigterm", "next_attempt_name", "restore_sigterm",
-    "run_name_problem", "write_rows_csv",
+    "LOCK_NAME",
+    "RunDirLock",
+    "Terminated",
+    "catch_sigterm",
+    "next_attempt_name",
+    "restore_sigterm",
+    "run_name_problem",
+    "write_rows_csv",
 ]
 
 LOCK_NAME = ".lock"
@@ -98,8 +104,9 @@ class RunDirLock:
             except OSError as err:
                 if err.errno not in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
                     # e.g. ENOLCK on a file system without locks: run unlocked rather than not at all
-                    logger.warning("cannot lock %s (%s): the run directory is not protected from a second run",
-                                   self.path, err)
+                    logger.warning(
+                        "cannot lock %s (%s): the run directory is not protected from a second run", self.path, err
+                    )
                 else:
                     f.seek(0)
                     holder = _describe_holder(f.read(2000))

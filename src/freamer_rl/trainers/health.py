@@ -24,8 +24,10 @@ def train(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool 
 
 def evaluate(path: str | Path, *, corrupt: list | None = None, **options: Any) -> dict[str, Any]:
     if corrupt:
-        raise ConfigError("--corrupt: the health evaluator does not corrupt observations (its real-env protocol is "
-                          "fixed); corrupt MiniGrid, gym or Crafter runs")  # fmt: skip
+        raise ConfigError(
+            "--corrupt: the health evaluator does not corrupt observations (its real-env protocol is "
+            "fixed); corrupt MiniGrid, gym or Crafter runs"
+        )
     return evaluate_checkpoint(path, **options)
 
 

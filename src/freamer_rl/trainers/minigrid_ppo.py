@@ -45,7 +45,13 @@ from torchrl.objectives.value import GAE
 from freamer_rl.config.checks import Range
 from freamer_rl.config.loader import VALIDATORS, config_to_dict
 from freamer_rl.config.sections import (
-    BASE_RANGES, BASE_RENAMED, PPO_RANGES, BaseConfig, PPOConfig, check_base, check_ppo_layout,
+    BASE_RANGES,
+    BASE_RENAMED,
+    PPO_RANGES,
+    BaseConfig,
+    PPOConfig,
+    check_base,
+    check_ppo_layout,
 )
 from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.layers.checks import set_value_checks
@@ -108,10 +114,13 @@ def validate(cfg: FreamerConfig) -> None:
     check_base(cfg)
     check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
     for i, c in enumerate(cfg.env.corrupt):
-        if c.key.startswith("embed.") and (c.when != "eval" or c.kind != "gaussian"
-                                           or c.key.split(".", 1)[1] not in cfg.model.modalities):  # fmt: skip
-            raise ConfigError(f"env.corrupt[{i}]: an embedding key (embed.<modality>, one of {cfg.model.modalities}) "
-                              f"takes kind gaussian when eval (Table 13's protocol), got {c.key} {c.kind} {c.when}")
+        if c.key.startswith("embed.") and (
+            c.when != "eval" or c.kind != "gaussian" or c.key.split(".", 1)[1] not in cfg.model.modalities
+        ):
+            raise ConfigError(
+                f"env.corrupt[{i}]: an embedding key (embed.<modality>, one of {cfg.model.modalities}) "
+                f"takes kind gaussian when eval (Table 13's protocol), got {c.key} {c.kind} {c.when}"
+            )
     check_model_names(cfg.model)
     check_model_shapes(cfg)
     check_machinery(cfg)
@@ -163,8 +172,9 @@ class Trainer(RunLoop):
         ).to(self.device)
         self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=None, average_gae=False)
         # reward shaping (App. G.1-G.2, A.5): PPO trains on ("next", "shaped_reward"); success uses the env reward
-        self.shaper = RewardShaper(cfg, self.modules.modalities, cfg.model.embed_dim,
-                                   _action_count(self.modules.actor), self.device)  # fmt: skip
+        self.shaper = RewardShaper(
+            cfg, self.modules.modalities, cfg.model.embed_dim, _action_count(self.modules.actor), self.device
+        )
         if self.shaper.active:
             self.gae.set_keys(reward=SHAPED_REWARD)
         self._shaping_logs: dict[str, float] = {}
@@ -187,8 +197,11 @@ class Trainer(RunLoop):
         self.params = [q for q in self.modules.actor_value.parameters() if q.requires_grad]
         # OGM-GE (Section 4.3.5, App. K): a parameter group per modality's gate (Mode A) or refiner (Mode B)
         o = cfg.ogm
-        self.ogm = None if o.mode == "none" else OGMGE(self.modules.refiners, mode=o.mode, alpha=o.alpha,
-                                                       lr_scale=o.lr_scale, noise=o.noise, ema=o.ema)  # fmt: skip
+        self.ogm = (
+            None
+            if o.mode == "none"
+            else OGMGE(self.modules.refiners, mode=o.mode, alpha=o.alpha, lr_scale=o.lr_scale, noise=o.noise, ema=o.ema)
+        )
         lr = cfg.optim.lr
         groups = self.params if self.ogm is None else self.ogm.param_groups(lr, self.params)
         # fused Adam / foreach clipping: ~4x less optimiser overhead for the ~90 small parameter tensors
@@ -197,8 +210,13 @@ class Trainer(RunLoop):
         # held from here until train() ends: a second run on this directory is refused instead of interleaving
         self._start(resume)
         frozen = sum(q.numel() for q in self.modules.actor_value.parameters() if not q.requires_grad)
-        logger.info("run dir %s | %s trainable parameters%s | device %s", self.run_dir,
-                    f"{sum(q.numel() for q in self.params):,}", f" ({frozen:,} frozen)" if frozen else "", self.device)
+        logger.info(
+            "run dir %s | %s trainable parameters%s | device %s",
+            self.run_dir,
+            f"{sum(q.numel() for q in self.params):,}",
+            f" ({frozen:,} frozen)" if frozen else "",
+            self.device,
+        )
 
     # -- RunLoop hooks -----------------------------------------------------------------------------------------
     @property
@@ -223,21 +241,26 @@ class Trainer(RunLoop):
     def _after_open(self, ckpt_path: Path | None) -> None:
         if ckpt_path is not None:
             if self.cfg.run.init_from:
-                logger.info("resuming this run's own checkpoint: run.init_from=%s is not applied",
-                            self.cfg.run.init_from)
+                logger.info(
+                    "resuming this run's own checkpoint: run.init_from=%s is not applied", self.cfg.run.init_from
+                )
         elif self.cfg.run.init_from:
-            source = transfer_weights(self.modules, self.cfg.run.init_from, config_to_dict(self.cfg),
-                                      config_to_dict(FreamerConfig()))
+            source = transfer_weights(
+                self.modules, self.cfg.run.init_from, config_to_dict(self.cfg), config_to_dict(FreamerConfig())
+            )
             logger.info("initialised the model from %s (run.init_from)", source)
 
     def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
         saved_ogm = (ckpt["config"].get("ogm") or {}).get("mode", "none")
         if saved_ogm != self.cfg.ogm.mode:  # OGM-GE's parameter groups shape the optimiser state
-            raise CheckpointError(f"checkpoint {path} was trained with ogm.mode={saved_ogm}, this config has "
-                                  f"ogm.mode={self.cfg.ogm.mode}; resume with the same mode")  # fmt: skip
+            raise CheckpointError(
+                f"checkpoint {path} was trained with ogm.mode={saved_ogm}, this config has "
+                f"ogm.mode={self.cfg.ogm.mode}; resume with the same mode"
+            )
         load_model_state(self.modules, ckpt["model"], path)
-        restore_optimizer(self.optimizer, ckpt["optimizer"], self.cfg.optim, int(ckpt["frames"]),
-                          self.cfg.run.total_frames)
+        restore_optimizer(
+            self.optimizer, ckpt["optimizer"], self.cfg.optim, int(ckpt["frames"]), self.cfg.run.total_frames
+        )
         if "ppo_steps" in ckpt:  # absent in checkpoints written before the shared optimiser step
             self.step_stats.load_state_dict(ckpt["ppo_steps"])
         self.shaper.load_state_dict(ckpt.get("shaping", {}))
@@ -333,17 +356,26 @@ class Trainer(RunLoop):
                 for k in ("loss_fm", "loss_cl", "loss_smooth"):
                     if k in aux_td.keys():
                         total = total + aux_td[k]
-                grad_norm = optimizer_step(total, self.optimizer, self.params, self.cfg.optim.max_grad_norm, self.step_stats,
-                                           foreach=True, before_step=modulate)  # non-finite: skipped, counted
+                grad_norm = optimizer_step(
+                    total,
+                    self.optimizer,
+                    self.params,
+                    self.cfg.optim.max_grad_norm,
+                    self.step_stats,
+                    foreach=True,
+                    before_step=modulate,
+                )  # non-finite: skipped, counted
                 if self.ogm is not None:  # each modality's FM-loss convergence drives its coefficient
                     self.ogm.observe({m: aux_td[f"fm_{m}"] for m in self.modules.refiners})
-                means.add({
-                    **{f"fm_displacement_{m}": v for m, v in self.modules.displacement(mb).items()},
-                    "loss_total": total,
-                    "grad_norm": grad_norm,
-                    **{k: v for k, v in loss_td.items() if v.numel() == 1},
-                    **{k: v for k, v in aux_td.items()},
-                })
+                means.add(
+                    {
+                        **{f"fm_displacement_{m}": v for m, v in self.modules.displacement(mb).items()},
+                        "loss_total": total,
+                        "grad_norm": grad_norm,
+                        **{k: v for k, v in loss_td.items() if v.numel() == 1},
+                        **{k: v for k, v in aux_td.items()},
+                    }
+                )
         out = means.means()
         if self.replay is not None:  # after the epochs: a batch's own successes are replayed from the next
             out["success_buffer_size"] = float(self.replay.store(data))
@@ -386,8 +418,16 @@ def train(cfg: FreamerConfig, run_dir: str | Path | None = None, *, resume: bool
 
 
 @torch.no_grad()
-def evaluate(checkpoint: str | Path, *, episodes: int = 20, deterministic: bool = False, num_envs: int | None = None,
-             seed: int = 12345, max_steps: int = 100_000, corrupt: list | None = None) -> dict[str, Any]:
+def evaluate(
+    checkpoint: str | Path,
+    *,
+    episodes: int = 20,
+    deterministic: bool = False,
+    num_envs: int | None = None,
+    seed: int = 12345,
+    max_steps: int = 100_000,
+    corrupt: list | None = None,
+) -> dict[str, Any]:
     """Run ``episodes`` complete episodes with the checkpoint's policy (sampling unless ``deterministic``)."""
     path = Path(checkpoint)
     ckpt, cfg = read_checkpoint_config(path, FreamerConfig)
@@ -402,9 +442,18 @@ def evaluate(checkpoint: str | Path, *, episodes: int = 20, deterministic: bool 
         raise ConfigError("env.corrupt: an embedding (embed.<modality>) takes kind gaussian only")
     corrupt = [c for c in entries if not c.key.startswith("embed.")]
     policy = modules.policy_with_embedding_noise(embed) if embed else modules.policy
-    result = run_episodes(cfg, policy, modules.primers(), episodes=episodes, deterministic=deterministic,
-                          num_envs=num_envs, seed=seed, max_steps=max_steps, corrupt=corrupt,
-                          step_metrics=lambda td: {f"fm_displacement_{m}": v for m, v in modules.displacement(td).items()})
+    result = run_episodes(
+        cfg,
+        policy,
+        modules.primers(),
+        episodes=episodes,
+        deterministic=deterministic,
+        num_envs=num_envs,
+        seed=seed,
+        max_steps=max_steps,
+        corrupt=corrupt,
+        step_metrics=lambda td: {f"fm_displacement_{m}": v for m, v in modules.displacement(td).items()},
+    )
     result.update({f"gate_{m}": g for m, g in modules.gates().items()})
     result["embedding_noise"] = embed
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
@@ -424,4 +473,3 @@ def params(cfg: FreamerConfig) -> list[dict]:
         return parameter_table(build_modules(cfg))
     finally:
         clip_log.setLevel(level)
-

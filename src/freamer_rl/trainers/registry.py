@@ -28,8 +28,17 @@ from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.trainers import health, minigrid_ppo
 from freamer_rl.trainers.baselines import dreamer_v3, impala, ppo_baseline
 
-__all__ = ["TrainerSpec", "TRAINERS", "get_trainer", "load_recipe", "load_config", "recipe_trainer", "trainer_of_checkpoint",
-           "resolve_checkpoint", "evaluate_any"]
+__all__ = [
+    "TrainerSpec",
+    "TRAINERS",
+    "get_trainer",
+    "load_recipe",
+    "load_config",
+    "recipe_trainer",
+    "trainer_of_checkpoint",
+    "resolve_checkpoint",
+    "evaluate_any",
+]
 
 
 @dataclass(frozen=True)
@@ -103,13 +112,16 @@ def trainer_of_checkpoint(path: Path) -> str:
             by_format.setdefault(spec.checkpoint_format, n)
         name = by_format.get(ckpt.get("format", "freamer_rl/1"))
     if name not in TRAINERS:
-        raise CheckpointError(f"checkpoint {path}: unknown trainer {name!r} / format {ckpt.get('format')!r} "
-                              f"(known trainers: {', '.join(sorted(TRAINERS))})")  # fmt: skip
+        raise CheckpointError(
+            f"checkpoint {path}: unknown trainer {name!r} / format {ckpt.get('format')!r} "
+            f"(known trainers: {', '.join(sorted(TRAINERS))})"
+        )
     return name
 
 
-def load_recipe(path: str | Path | None, overrides: list[str] | None = None, *,
-                schema: type | None = None) -> tuple[str, Any]:
+def load_recipe(
+    path: str | Path | None, overrides: list[str] | None = None, *, schema: type | None = None
+) -> tuple[str, Any]:
     """``(trainer name, config)`` of a recipe (the defaults when ``path`` is None), read once, with dotted
     ``overrides``, built as the schema its ``trainer:`` names (no key: ``minigrid_ppo``). An explicit ``schema``
     must match the recipe's trainer when the recipe names one."""
@@ -118,13 +130,15 @@ def load_recipe(path: str | Path | None, overrides: list[str] | None = None, *,
     name, data = split_trainer(raw, source)
     spec = get_trainer(name, source)
     if schema is not None and TRAINER_KEY in raw and spec.schema is not schema:
-        raise ConfigError(f"{source}: {TRAINER_KEY}: {name!r} recipes are {spec.schema.__name__}s, not "
-                          f"{schema.__name__}s")  # fmt: skip
+        raise ConfigError(
+            f"{source}: {TRAINER_KEY}: {name!r} recipes are {spec.schema.__name__}s, not {schema.__name__}s"
+        )
     return name, config_from_dict(data, schema if schema is not None else spec.schema)
 
 
-def load_config(path: str | Path | None = None, overrides: list[str] | None = None, *,
-                schema: type | None = None) -> Any:
+def load_config(
+    path: str | Path | None = None, overrides: list[str] | None = None, *, schema: type | None = None
+) -> Any:
     """The config of a recipe built as its trainer's schema (:func:`load_recipe` without the name)."""
     return load_recipe(path, overrides, schema=schema)[1]
 
@@ -139,4 +153,3 @@ def evaluate_any(checkpoint_or_run: str | Path, **options: Any) -> dict[str, Any
     ``episodes``, ``deterministic``, ``num_envs``, ``seed``)."""
     path = resolve_checkpoint(checkpoint_or_run)
     return get_trainer(trainer_of_checkpoint(path), str(path)).evaluate(path, **options)
-

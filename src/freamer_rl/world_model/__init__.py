@@ -10,15 +10,22 @@
 
 from freamer_rl.world_model import anomaly
 from freamer_rl.world_model.anomaly import *  # noqa: F403
-from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv, valid_imagination_mask
 from freamer_rl.world_model.functional import action_to_onehot, free_nats_kl, gaussian_kl, symexp, symlog
+from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv, valid_imagination_mask
 from freamer_rl.world_model.obs_nets import MLPObsDecoder, MLPObsEncoder
 from freamer_rl.world_model.rssm import RSSM, WorldModel
 from freamer_rl.world_model.training import as_sequences, train_world_model
 
 # the public names of the submodules (``DANGER_HR`` stays in :mod:`.anomaly`)
 __all__ = [
-    "RSSM", "WorldModel", "MLPObsEncoder", "MLPObsDecoder", "gaussian_kl", "free_nats_kl", "symlog", "symexp",
+    "RSSM",
+    "WorldModel",
+    "MLPObsEncoder",
+    "MLPObsDecoder",
+    "gaussian_kl",
+    "free_nats_kl",
+    "symlog",
+    "symexp",
     "action_to_onehot",
     "as_sequences",
     "train_world_model",

@@ -72,8 +72,9 @@ class KLAnomalyDetector(nn.Module):
     statistics *before* it is included (a spike does not raise its own threshold), then the value is included.
     """
 
-    def __init__(self, k_sigma: float = 2.0, warmup: int = 20, momentum: float | None = None,
-                 min_std: float = 1e-4) -> None:
+    def __init__(
+        self, k_sigma: float = 2.0, warmup: int = 20, momentum: float | None = None, min_std: float = 1e-4
+    ) -> None:
         super().__init__()
         if momentum is not None and not 0.0 < momentum <= 1.0:
             raise ValueError(f"momentum: expected None or a float in (0, 1], got {momentum}")
@@ -114,8 +115,10 @@ class KLAnomalyDetector(nn.Module):
             self.mean = torch.zeros_like(kl)
             self.m2 = torch.zeros_like(kl)
         elif self.count.shape != kl.shape:
-            raise ValueError(f"kl: expected shape {tuple(self.count.shape)} (the streams seen so far), "
-                             f"got {tuple(kl.shape)}; call reset() to start new streams")
+            raise ValueError(
+                f"kl: expected shape {tuple(self.count.shape)} (the streams seen so far), "
+                f"got {tuple(kl.shape)}; call reset() to start new streams"
+            )
         flags = (self.count >= self.warmup) & (kl > self.threshold)
         delta = kl - self.mean
         if self.momentum is None:
@@ -191,8 +194,10 @@ class KLAnomalyTransform(Transform):
     ) -> None:
         enc = world_model.encoder
         if not isinstance(enc, StepEncoder):
-            raise TypeError(f"KLAnomalyTransform: the world model's encoder {type(enc).__name__} does not implement "
-                            "freamer_rl.world_model.encoder.StepEncoder (online step API)")  # fmt: skip
+            raise TypeError(
+                f"KLAnomalyTransform: the world model's encoder {type(enc).__name__} does not implement "
+                "freamer_rl.world_model.encoder.StepEncoder (online step API)"
+            )
         root = enc_state_key if isinstance(enc_state_key, tuple) else (enc_state_key,)
         self.enc_keys = {n: (*root, n) for n in enc.state_shapes()}
         super().__init__(in_keys=[], out_keys=[kl_key, anomaly_key, deter_key, stoch_key, *self.enc_keys.values()])
@@ -285,13 +290,20 @@ def _action_strip(ax, x, act, action_names: Sequence[str]) -> None:
     base = ["#4c78a8", "#54a24b", "#f58518", "#b279a2", "#e45756", "#72b7b2", "#9d755d"]
     cmap = ListedColormap([base[i % len(base)] for i in range(n_act)])
     extent = (x[0], x[-1] if T > 1 else x[0] + 1, 0, 1)
-    ax.imshow(act[None, :], aspect="auto", cmap=cmap, vmin=-0.5, vmax=n_act - 0.5, extent=extent,
-              interpolation="nearest")
+    ax.imshow(
+        act[None, :], aspect="auto", cmap=cmap, vmin=-0.5, vmax=n_act - 0.5, extent=extent, interpolation="nearest"
+    )
     ax.set_yticks([])
     ax.set_ylabel("action", rotation=0, ha="right", va="center")
     names = list(action_names) + [str(i) for i in range(len(action_names), n_act)]
-    ax.legend(handles=[Patch(color=cmap(i), label=names[i]) for i in range(n_act)], loc="upper center",
-              bbox_to_anchor=(0.5, -0.05), ncol=n_act, fontsize=8, frameon=False)
+    ax.legend(
+        handles=[Patch(color=cmap(i), label=names[i]) for i in range(n_act)],
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.05),
+        ncol=n_act,
+        fontsize=8,
+        frameon=False,
+    )
 
 
 def plot_anomaly_timeline(

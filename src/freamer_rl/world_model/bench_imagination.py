@@ -106,14 +106,16 @@ def _rollouts_per_second(env, policy, seeds, horizon: int, n_rollouts: int, warm
     """Imagined steps/s of ``n_rollouts`` rollouts ``[batch, horizon]`` (after ``warmup`` untimed ones)."""
     with torch.no_grad(), set_exploration_type(ExplorationType.RANDOM):
         for _ in range(warmup):
-            out = env.rollout(horizon, policy, auto_reset=False, break_when_any_done=False,
-                              tensordict=env.reset(seeds.clone()))
+            out = env.rollout(
+                horizon, policy, auto_reset=False, break_when_any_done=False, tensordict=env.reset(seeds.clone())
+            )
             if tuple(out.shape) != (seeds.shape[0], horizon):
                 raise RuntimeError(f"rollout shape {tuple(out.shape)} != {(seeds.shape[0], horizon)}")
         t0 = time.perf_counter()
         for _ in range(n_rollouts):
-            env.rollout(horizon, policy, auto_reset=False, break_when_any_done=False,
-                              tensordict=env.reset(seeds.clone()))
+            env.rollout(
+                horizon, policy, auto_reset=False, break_when_any_done=False, tensordict=env.reset(seeds.clone())
+            )
         dt = time.perf_counter() - t0
     return n_rollouts * seeds.shape[0] * horizon / dt
 
@@ -144,8 +146,10 @@ def run(batch: int = 64, horizon: int = 15, rounds: int = 20, rollouts_per_round
     mean = {k: sum(v) / len(v) for k, v in res.items()}
     ref = median["torchrl_dreamer_env"]
     # paired per round: ours vs the DreamerEnv doing the same work (median of the per-round ratios)
-    pairs = {"rssm_world_model_env": "torchrl_dreamer_env_with_continuation",
-             "rssm_world_model_env_no_continuation": "torchrl_dreamer_env"}
+    pairs = {
+        "rssm_world_model_env": "torchrl_dreamer_env_with_continuation",
+        "rssm_world_model_env_no_continuation": "torchrl_dreamer_env",
+    }
     equal_work = {
         ours: round(float(torch.tensor([a / b for a, b in zip(res[ours], res[theirs])]).median()), 3)
         for ours, theirs in pairs.items()

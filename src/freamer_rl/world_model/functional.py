@@ -38,9 +38,7 @@ def _check_last_dim(name: str, x: torch.Tensor, expected: int) -> None:
         raise ValueError(f"{name}: expected last dim {expected}, got shape {tuple(x.shape)}")
 
 
-def gaussian_kl(
-    mean_q: torch.Tensor, std_q: torch.Tensor, mean_p: torch.Tensor, std_p: torch.Tensor
-) -> torch.Tensor:
+def gaussian_kl(mean_q: torch.Tensor, std_q: torch.Tensor, mean_p: torch.Tensor, std_p: torch.Tensor) -> torch.Tensor:
     """Closed-form ``KL(N(mean_q, std_q) || N(mean_p, std_p))`` of diagonal Gaussians, summed over the last dim.
 
     Shapes ``[*B, S]`` -> ``[*B]``. Per dim: ``log(sp/sq) + (sq^2 + (mq - mp)^2) / (2 sp^2) - 1/2``.
@@ -85,6 +83,7 @@ def action_to_onehot(action: torch.Tensor, action_dim: int, batch_ndim: int) -> 
             f"got {tuple(action.shape)}"
         )
     if action.numel() and (int(action.min()) < 0 or int(action.max()) >= action_dim):
-        raise ValueError(f"action: indices must lie in [0, {action_dim}), got range "
-                         f"[{int(action.min())}, {int(action.max())}]")
+        raise ValueError(
+            f"action: indices must lie in [0, {action_dim}), got range [{int(action.min())}, {int(action.max())}]"
+        )
     return F.one_hot(action.long(), action_dim).float()

@@ -114,8 +114,10 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
 
     # -- TorchRL API ----------------------------------------------------------------------------------------------
     def _reset(self, tensordict: TensorDictBase | None = None, **kwargs) -> TensorDictBase:
-        if tensordict is None or self.deter_key not in tensordict.keys(True) or self.stoch_key not in tensordict.keys(
-            True
+        if (
+            tensordict is None
+            or self.deter_key not in tensordict.keys(True)
+            or self.stoch_key not in tensordict.keys(True)
         ):
             have = "no TensorDict" if tensordict is None else f"keys {sorted(map(str, tensordict.keys(True, True)))}"
             raise ValueError(
@@ -130,9 +132,14 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
                 f"RSSMWorldModelEnv.reset: expected {self.deter_key!r} [..., {self.world_model.deter_dim}] and "
                 f"{self.stoch_key!r} [..., {self.world_model.stoch_dim}], got {tuple(h.shape)} and {tuple(z.shape)}"
             )
-        return self._make_td(h, z, torch.cat([h, z], dim=-1), None,
-                             torch.zeros(*tensordict.batch_size, 1, dtype=torch.bool, device=h.device),
-                             tensordict.batch_size)
+        return self._make_td(
+            h,
+            z,
+            torch.cat([h, z], dim=-1),
+            None,
+            torch.zeros(*tensordict.batch_size, 1, dtype=torch.bool, device=h.device),
+            tensordict.batch_size,
+        )
 
     def _make_td(self, h, z, latent, reward, terminated, batch_size) -> TensorDict:
         src = {
@@ -169,8 +176,9 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
         """No-op: imagination never resets mid-rollout (there is no real initial state to go back to)."""
         return tensordict
 
-    def rollout(self, max_steps: int, policy=None, callback=None, *, break_when_any_done: bool | None = False,
-                **kwargs) -> TensorDictBase:
+    def rollout(
+        self, max_steps: int, policy=None, callback=None, *, break_when_any_done: bool | None = False, **kwargs
+    ) -> TensorDictBase:
         """:meth:`EnvBase.rollout` with ``break_when_any_done=False`` by default (fixed-horizon imagination)."""
         return super().rollout(max_steps, policy, callback, break_when_any_done=break_when_any_done, **kwargs)
 

@@ -67,8 +67,9 @@ def reconstruction_mse(world_model: WorldModel, windows: TensorDictBase) -> dict
 
 
 @torch.no_grad()
-def imagination_horizon(world_model: WorldModel, windows: TensorDictBase, context: int,
-                        reward_tol: float) -> torch.Tensor:  # fmt: skip
+def imagination_horizon(
+    world_model: WorldModel, windows: TensorDictBase, context: int, reward_tol: float
+) -> torch.Tensor:
     """Open-loop reward-prediction horizon of each window (module docstring): ``windows [N, C + H_max]`` ->
     ``[N]`` float (number of imagined steps before the first reward error ``> reward_tol`` or false predicted
     termination; ``H_max`` when none); definition in the module docstring."""
@@ -76,8 +77,9 @@ def imagination_horizon(world_model: WorldModel, windows: TensorDictBase, contex
     N, L = windows.shape
     H = L - context
     if context < 1 or H < 1:
-        raise ValueError(f"imagination_horizon: need context >= 1 and a window longer than it; got context "
-                         f"{context}, window {L}")  # fmt: skip
+        raise ValueError(
+            f"imagination_horizon: need context >= 1 and a window longer than it; got context {context}, window {L}"
+        )
     out, _ = world_model.observe(windows[:, :context], sample=False)
     h, z = out["h"][:, -1], out["post_mean"][:, -1]
     actions = world_model.action_to_onehot(windows.get("action")[:, context:], 2)

@@ -29,7 +29,11 @@ class MLPObsEncoder(StatelessStepMixin, nn.Module):
     """
 
     def __init__(
-        self, obs_dims: Mapping[NestedKey, int], out_dim: int, hidden: int = 256, layers: int = 2,
+        self,
+        obs_dims: Mapping[NestedKey, int],
+        out_dim: int,
+        hidden: int = 256,
+        layers: int = 2,
         symlog_inputs: bool = True,
     ) -> None:
         super().__init__()

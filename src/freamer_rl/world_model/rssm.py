@@ -44,7 +44,14 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import LossModule
 
 from freamer_rl.world_model.functional import (
-    _check_last_dim, _flat, action_to_onehot, free_nats_kl, gaussian_kl, mlp, symexp, symlog,
+    _check_last_dim,
+    _flat,
+    action_to_onehot,
+    free_nats_kl,
+    gaussian_kl,
+    mlp,
+    symexp,
+    symlog,
 )
 from freamer_rl.world_model.obs_nets import MLPObsDecoder, MLPObsEncoder
 

@@ -1,5 +1,4 @@
-"""Training the world model from a TorchRL replay buffer: :func:`as_sequences` and :func:`train_world_model`.
-"""
+"""Training the world model from a TorchRL replay buffer: :func:`as_sequences` and :func:`train_world_model`."""
 
 from __future__ import annotations
 

@@ -98,8 +98,9 @@ PARSERS: dict[str, Callable[..., object]] = {"regex": _build_regex, "llm": _buil
 _MADE: dict[tuple, CachedMissionParser] = {}
 
 
-def make_mission_parser(kind: str, vocab: MissionVocabulary, llm_path: str | None = None,
-                        **options) -> CachedMissionParser:
+def make_mission_parser(
+    kind: str, vocab: MissionVocabulary, llm_path: str | None = None, **options
+) -> CachedMissionParser:
     """Return the cached parser of ``kind`` for ``vocab``; the same object again for the same arguments.
 
     Args:

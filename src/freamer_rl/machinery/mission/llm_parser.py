@@ -96,10 +96,14 @@ def check_model_dir(directory: str | Path | None) -> Path:
     if not any(any(path.glob(pattern)) for pattern in _WEIGHT_PATTERNS):
         pickled = sorted({p.name for pattern in _PICKLE_PATTERNS for p in path.glob(pattern)})
         if pickled:
-            raise MissingWeightsError(missing_weights_message(
-                path, f"found only pickle-based weights ({', '.join(pickled[:3])}), which are never loaded (unpickling "
-                "runs code); needs model.safetensors (the Hub repo's own, or save_pretrained(..., "
-                "safe_serialization=True))"))  # fmt: skip
+            raise MissingWeightsError(
+                missing_weights_message(
+                    path,
+                    f"found only pickle-based weights ({', '.join(pickled[:3])}), which are never loaded (unpickling "
+                    "runs code); needs model.safetensors (the Hub repo's own, or save_pretrained(..., "
+                    "safe_serialization=True))",
+                )
+            )
         raise MissingWeightsError(missing_weights_message(path, "no weight files (model.safetensors)"))
     return path
 
@@ -256,8 +260,9 @@ class LLMMissionParser:
 
     source = "llm"
 
-    def __init__(self, model_dir, vocab: MissionVocabulary, *, max_new_tokens: int = 128, device: str = "cpu",
-                 fallback=None) -> None:
+    def __init__(
+        self, model_dir, vocab: MissionVocabulary, *, max_new_tokens: int = 128, device: str = "cpu", fallback=None
+    ) -> None:
         self.model_dir = check_model_dir(model_dir)
         self.vocab = vocab
         self.max_new_tokens = int(max_new_tokens)
@@ -278,14 +283,17 @@ class LLMMissionParser:
             )
         except Exception as exc:  # noqa: BLE001 -- a damaged file raises safetensors' own error type, among others
             raise MissingWeightsError(
-                missing_weights_message(self.model_dir, f"cannot load the model, damaged or incomplete files? "
-                                        f"({_first_line(exc, 160)})")
+                missing_weights_message(
+                    self.model_dir, f"cannot load the model, damaged or incomplete files? ({_first_line(exc, 160)})"
+                )
             ) from exc
         missing = list(info.get("missing_keys") or [])
         if missing:  # transformers would initialise these at random: refuse
-            raise MissingWeightsError(missing_weights_message(
-                self.model_dir, f"the weight files lack {len(missing)} tensors (e.g. {missing[0]})"
-            ))
+            raise MissingWeightsError(
+                missing_weights_message(
+                    self.model_dir, f"the weight files lack {len(missing)} tensors (e.g. {missing[0]})"
+                )
+            )
         return tokenizer, model.to(self.device).eval()
 
     def generate(self, mission: str) -> str:
@@ -300,7 +308,7 @@ class LLMMissionParser:
             out = self.model.generate(
                 **encoded, max_new_tokens=self.max_new_tokens, do_sample=False, num_beams=1, pad_token_id=pad_id
             )
-        new_tokens = out[0, encoded["input_ids"].shape[1]:]
+        new_tokens = out[0, encoded["input_ids"].shape[1] :]
         return self.tokenizer.decode(new_tokens, skip_special_tokens=True)
 
     def parse(self, mission: str) -> ParsedMission:
@@ -322,7 +330,12 @@ class LLMMissionParser:
             self._logged_reasons.add(reason)
             logger.warning(
                 "LLM mission parser fell back to %s (%s) for mission %r: %s (later %s fallbacks are counted, "
-                "not logged)", type(self.fallback).__name__, reason, _text(mission)[:120], detail[:200], reason,
+                "not logged)",
+                type(self.fallback).__name__,
+                reason,
+                _text(mission)[:120],
+                detail[:200],
+                reason,
             )
         return self.fallback.parse(mission)
 

@@ -21,11 +21,38 @@ from freamer_rl.machinery.mission.types import MissionVocabulary, ParsedMission,
 
 _WORD = re.compile(r"[a-z]+")
 # Verbs that start a clause even when they are not vocabulary actions (only vocabulary actions are reported).
-CLAUSE_VERBS = frozenset({
-    "go", "get", "reach", "pick", "open", "put", "place", "unlock", "find", "traverse", "use", "avoid", "drop",
-    "toggle", "fetch", "grab", "take", "collect", "visit", "enter", "close", "explore", "move", "navigate", "bring",
-    "carry", "locate", "search",
-})
+CLAUSE_VERBS = frozenset(
+    {
+        "go",
+        "get",
+        "reach",
+        "pick",
+        "open",
+        "put",
+        "place",
+        "unlock",
+        "find",
+        "traverse",
+        "use",
+        "avoid",
+        "drop",
+        "toggle",
+        "fetch",
+        "grab",
+        "take",
+        "collect",
+        "visit",
+        "enter",
+        "close",
+        "explore",
+        "move",
+        "navigate",
+        "bring",
+        "carry",
+        "locate",
+        "search",
+    }
+)
 AVOID_VERBS = frozenset({"avoid"})
 GOAL_PREPOSITIONS = frozenset({"near", "beside", "next_to"})  # "put X near Y": Y is the goal
 PLACE_PREPOSITIONS = frozenset({"from", "in", "inside", "through"})  # "get X from the Y room": Y is a place
@@ -117,7 +144,7 @@ class RegexMissionParser:
         """Return the word lists in execution order: "A after you B" -> [B, A]; otherwise [words]."""
         for i in range(len(words) - 1):
             if words[i] == "after" and words[i + 1] == "you":
-                return [words[i + 2:], words[:i]]
+                return [words[i + 2 :], words[:i]]
         return [words]
 
     def _clauses(self, words: list[str]) -> list[_Clause]:

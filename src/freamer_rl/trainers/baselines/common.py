@@ -72,24 +72,31 @@ class ActorCriticRunLoop(RunLoop):
         for mb in minibatches:
             loss_td = self.loss(self.common(mb))
             total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
-            grad_norm = optimizer_step(total, self.optimizer, self.params, self.cfg.optim.max_grad_norm,
-                                       self.step_stats, foreach=True)  # non-finite: skipped, counted
-            means.add({"loss_total": total, "grad_norm": grad_norm,
-                       **{k: v for k, v in loss_td.items() if v.numel() == 1}})  # fmt: skip
+            grad_norm = optimizer_step(
+                total, self.optimizer, self.params, self.cfg.optim.max_grad_norm, self.step_stats, foreach=True
+            )  # non-finite: skipped, counted
+            means.add(
+                {"loss_total": total, "grad_norm": grad_norm, **{k: v for k, v in loss_td.items() if v.numel() == 1}}
+            )
         return means.means()
 
     def _model_state(self) -> dict[str, Any]:
-        return {"model": self.net.state_dict(), "optimizer": self.optimizer.state_dict(),
-                "steps": self.step_stats.state_dict()}  # fmt: skip
+        return {
+            "model": self.net.state_dict(),
+            "optimizer": self.optimizer.state_dict(),
+            "steps": self.step_stats.state_dict(),
+        }
 
     def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
         try:
             self.net.load_state_dict(ckpt["model"])
         except RuntimeError as err:
-            raise CheckpointError(f"checkpoint {path}: weights do not fit this network: "
-                                  f"{str(err).splitlines()[0][:200]}") from err  # fmt: skip
-        restore_optimizer(self.optimizer, ckpt["optimizer"], self.cfg.optim, int(ckpt["frames"]),
-                          self.cfg.run.total_frames)
+            raise CheckpointError(
+                f"checkpoint {path}: weights do not fit this network: {str(err).splitlines()[0][:200]}"
+            ) from err
+        restore_optimizer(
+            self.optimizer, ckpt["optimizer"], self.cfg.optim, int(ckpt["frames"]), self.cfg.run.total_frames
+        )
         self.step_stats.load_state_dict(ckpt["steps"])
 
     def _extra_row(self) -> dict[str, Any]:
@@ -116,5 +123,6 @@ def evaluate_actor_critic(path: Path, schema: type, **options: Any) -> dict[str,
 def actor_critic_params(cfg: Any) -> list[dict]:
     """Parameter rows: encoder(s), actor head, critic head, Total."""
     net = build_network(cfg)
-    return parameter_rows({"encoder": net.module[0], "actor head": net.get_policy_head(),
-                           "critic head": net.get_value_head()})
+    return parameter_rows(
+        {"encoder": net.module[0], "actor head": net.get_policy_head(), "critic head": net.get_value_head()}
+    )

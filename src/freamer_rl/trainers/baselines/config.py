@@ -7,7 +7,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from freamer_rl.config.checks import BATCH_LIMIT, LAYERS_LIMIT, WIDTH_LIMIT, size_range, NON_NEGATIVE, POSITIVE, UNIT_INTERVAL, Range
+from freamer_rl.config.checks import (
+    BATCH_LIMIT,
+    LAYERS_LIMIT,
+    NON_NEGATIVE,
+    POSITIVE,
+    UNIT_INTERVAL,
+    WIDTH_LIMIT,
+    Range,
+    size_range,
+)
 from freamer_rl.config.loader import VALIDATORS
 from freamer_rl.config.sections import (
     BASE_RANGES,
@@ -21,8 +30,18 @@ from freamer_rl.config.sections import (
 )
 from freamer_rl.errors import ConfigError
 
-__all__ = ["NETWORK_INITS", "NetworkConfig", "network_init", "check_network", "PPOBaselineConfig", "ImpalaSection",
-           "ImpalaConfig", "DreamerSection", "DreamerConfig", "ARCHITECTURE_FIELDS"]
+__all__ = [
+    "NETWORK_INITS",
+    "NetworkConfig",
+    "network_init",
+    "check_network",
+    "PPOBaselineConfig",
+    "ImpalaSection",
+    "ImpalaConfig",
+    "DreamerSection",
+    "DreamerConfig",
+    "ARCHITECTURE_FIELDS",
+]
 
 
 NETWORK_RANGES: dict[str, Range] = {"network.hidden": size_range(WIDTH_LIMIT)}
@@ -62,8 +81,9 @@ def check_network(net: NetworkConfig) -> None:
     if net.init not in NETWORK_INITS:
         raise ConfigError(f"network.init: expected one of {', '.join(NETWORK_INITS)}, got {net.init!r}")
     if len(net.cnn_channels) != 3 or min(net.cnn_channels) < 1:
-        raise ConfigError(f"network.cnn_channels: expected 3 positive ints (one per conv layer), got "
-                          f"{net.cnn_channels}")
+        raise ConfigError(
+            f"network.cnn_channels: expected 3 positive ints (one per conv layer), got {net.cnn_channels}"
+        )
 
 
 @dataclass
@@ -129,9 +149,10 @@ class ImpalaConfig(BaseConfig):
 
     def reads_observation(self, key: str) -> bool:
         return key in self.network.observation_keys
+
     RENAMED: ClassVar[dict[str, str]] = {
-        **BASE_RENAMED, **{f"ppo.{k}": f"impala.{k}" for k in ("frames_per_batch", "gamma", "entropy_coeff",
-                                                               "critic_coeff")},
+        **BASE_RENAMED,
+        **{f"ppo.{k}": f"impala.{k}" for k in ("frames_per_batch", "gamma", "entropy_coeff", "critic_coeff")},
     }
 
 
@@ -140,15 +161,17 @@ def validate_impala(cfg: ImpalaConfig) -> None:
     check_network(cfg.network)
     s = cfg.impala
     if s.frames_per_batch % cfg.env.num_envs:
-        raise ConfigError(f"impala.frames_per_batch ({s.frames_per_batch}) must be divisible by env.num_envs "
-                          f"({cfg.env.num_envs})")  # fmt: skip
+        raise ConfigError(
+            f"impala.frames_per_batch ({s.frames_per_batch}) must be divisible by env.num_envs ({cfg.env.num_envs})"
+        )
     if not 0 < s.c_clip <= s.rho_clip:
         raise ConfigError(f"impala.c_clip: expected a number in (0, impala.rho_clip={s.rho_clip}], got {s.c_clip}")
     if s.optimizer not in ("adam", "rmsprop"):
         raise ConfigError(f"impala.optimizer: expected 'adam' or 'rmsprop', got {s.optimizer!r}")
     if s.frames_per_batch % s.minibatches:
-        raise ConfigError(f"impala.minibatches: got {s.minibatches}, must divide impala.frames_per_batch "
-                          f"({s.frames_per_batch})")  # fmt: skip
+        raise ConfigError(
+            f"impala.minibatches: got {s.minibatches}, must divide impala.frames_per_batch ({s.frames_per_batch})"
+        )
 
 
 VALIDATORS[ImpalaConfig] = validate_impala
@@ -190,8 +213,14 @@ class DreamerSection:
 
 
 _DREAMER_POSITIVE = ("actor_lr", "value_lr", "actor_grad_clip", "value_grad_clip")
-_DREAMER_NON_NEGATIVE = ("lambda_dynamic", "lambda_representation", "free_nats", "entropy_bonus", "slow_critic",
-                         "prefill_frames")
+_DREAMER_NON_NEGATIVE = (
+    "lambda_dynamic",
+    "lambda_representation",
+    "free_nats",
+    "entropy_bonus",
+    "slow_critic",
+    "prefill_frames",
+)
 
 
 def _dreamer_ranges() -> dict[str, Range]:
@@ -224,8 +253,12 @@ class DreamerConfig(BaseConfig):
     dreamer: DreamerSection = field(default_factory=DreamerSection)
 
     RANGES: ClassVar[dict[str, Range]] = _dreamer_ranges()
-    RENAMED: ClassVar[dict[str, str]] = {**BASE_RENAMED, "dreamer.model_lr": "optim.lr", "dreamer.adam_eps": "optim.eps",
-                                         "dreamer.model_grad_clip": "optim.max_grad_norm"}
+    RENAMED: ClassVar[dict[str, str]] = {
+        **BASE_RENAMED,
+        "dreamer.model_lr": "optim.lr",
+        "dreamer.adam_eps": "optim.eps",
+        "dreamer.model_grad_clip": "optim.max_grad_norm",
+    }
 
     def reads_observation(self, key: str) -> bool:
         return key in self.dreamer.observation_keys
@@ -238,18 +271,23 @@ def _check_dreamer_section(d: DreamerSection, num_envs: int) -> None:
     if not d.cnn_mults or min(d.cnn_mults) < 1:
         raise ConfigError(f"dreamer.cnn_mults: expected a non-empty list of ints >= 1, got {d.cnn_mults}")
     if d.frames_per_batch % num_envs:
-        raise ConfigError(f"dreamer.frames_per_batch: must be divisible by env.num_envs ({num_envs}), "
-                          f"got {d.frames_per_batch}")  # fmt: skip
+        raise ConfigError(
+            f"dreamer.frames_per_batch: must be divisible by env.num_envs ({num_envs}), got {d.frames_per_batch}"
+        )
     steps = d.frames_per_batch // num_envs
     if d.sequence_length > steps:
-        raise ConfigError(f"dreamer.sequence_length: must be <= the steps per env per batch ({steps} = "
-                          f"dreamer.frames_per_batch / env.num_envs), got {d.sequence_length}")  # fmt: skip
+        raise ConfigError(
+            f"dreamer.sequence_length: must be <= the steps per env per batch ({steps} = "
+            f"dreamer.frames_per_batch / env.num_envs), got {d.sequence_length}"
+        )
     # the replay keeps whole [num_envs, steps] rows of one env: capacity_frames // steps sequences of `steps` frames
     held = (d.replay_capacity // steps) * steps
     if held < max(d.frames_per_batch, d.prefill_frames):
-        raise ConfigError(f"dreamer.replay_capacity: must hold dreamer.frames_per_batch and dreamer.prefill_frames "
-                          f"({max(d.frames_per_batch, d.prefill_frames)}) in whole sequences of {steps} steps "
-                          f"(it holds {held} frames), got {d.replay_capacity}")  # fmt: skip
+        raise ConfigError(
+            f"dreamer.replay_capacity: must hold dreamer.frames_per_batch and dreamer.prefill_frames "
+            f"({max(d.frames_per_batch, d.prefill_frames)}) in whole sequences of {steps} steps "
+            f"(it holds {held} frames), got {d.replay_capacity}"
+        )
 
 
 def validate_dreamer(cfg: DreamerConfig) -> None:
@@ -257,13 +295,23 @@ def validate_dreamer(cfg: DreamerConfig) -> None:
     check_base(cfg)
     _check_dreamer_section(cfg.dreamer, cfg.env.num_envs)
     if cfg.collector.num_collectors != 1:
-        raise ConfigError(f"collector.num_collectors: the DreamerV3 trainer collects in one process (1), got "
-                          f"{cfg.collector.num_collectors}")  # fmt: skip
+        raise ConfigError(
+            f"collector.num_collectors: the DreamerV3 trainer collects in one process (1), got "
+            f"{cfg.collector.num_collectors}"
+        )
 
 
 VALIDATORS[DreamerConfig] = validate_dreamer
 
 
 #: ``dreamer`` fields that shape the networks: a checkpoint only resumes / loads with the same values.
-ARCHITECTURE_FIELDS = ("observation_keys", "stoch_categoricals", "stoch_classes", "deter", "hidden", "mlp_layers",
-                       "cnn_depth", "cnn_mults")
+ARCHITECTURE_FIELDS = (
+    "observation_keys",
+    "stoch_categoricals",
+    "stoch_classes",
+    "deter",
+    "hidden",
+    "mlp_layers",
+    "cnn_depth",
+    "cnn_mults",
+)

@@ -30,7 +30,10 @@ from typing import Any
 
 import torch
 from tensordict.nn import (
-    InteractionType, ProbabilisticTensorDictModule, ProbabilisticTensorDictSequential, TensorDictModule,
+    InteractionType,
+    ProbabilisticTensorDictModule,
+    ProbabilisticTensorDictSequential,
+    TensorDictModule,
     TensorDictSequential,
 )
 from torch import nn
@@ -38,8 +41,16 @@ from torchrl.data import Composite, LazyTensorStorage, OneHot, ReplayBuffer, Unb
 from torchrl.envs.model_based.dreamer import DreamerEnv
 from torchrl.envs.transforms import TensorDictPrimer
 from torchrl.modules import (
-    DreamerV3ImageDecoder, DreamerV3ImageEncoder, DreamerV3MLP, OneHotCategorical, RSSMPosteriorV3, RSSMPriorV3,
-    RSSMRolloutV3, RSSMStateEstimatorV3, SymExpTwoHot, WorldModelWrapper,
+    DreamerV3ImageDecoder,
+    DreamerV3ImageEncoder,
+    DreamerV3MLP,
+    OneHotCategorical,
+    RSSMPosteriorV3,
+    RSSMPriorV3,
+    RSSMRolloutV3,
+    RSSMStateEstimatorV3,
+    SymExpTwoHot,
+    WorldModelWrapper,
 )
 from torchrl.modules.functional import symlog
 from torchrl.objectives import DreamerV3ActorLoss, DreamerV3ModelLoss, DreamerV3ValueLoss, SoftUpdate
@@ -58,8 +69,18 @@ from freamer_rl.trainers.baselines.config import ARCHITECTURE_FIELDS, DreamerCon
 #: what shapes DreamerV3's weights: the env and the ``dreamer`` architecture fields (the registry entry's)
 STRUCTURAL = ("env", *(f"dreamer.{k}" for k in ARCHITECTURE_FIELDS))
 
-__all__ = ["DreamerConfig", "DreamerNets", "DreamerLearner", "DreamerTrainer", "SequenceReplay", "STRUCTURAL", "build_nets",
-           "train", "evaluate", "params"]
+__all__ = [
+    "DreamerConfig",
+    "DreamerNets",
+    "DreamerLearner",
+    "DreamerTrainer",
+    "SequenceReplay",
+    "STRUCTURAL",
+    "build_nets",
+    "train",
+    "evaluate",
+    "params",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -100,8 +121,15 @@ class ObsFeaturizer(nn.Module):
 class MultiEncoder(nn.Module):
     """``[features [*B, F]] [, image uint8 [*B, H, W, C]]`` -> ``[*B, E]`` (an MLP and / or TorchRL's CNN)."""
 
-    def __init__(self, features: int, image_shape: tuple[int, int, int] | None, hidden: int, depth: int,
-                 cnn_depth: int, cnn_mults: tuple[int, ...]) -> None:
+    def __init__(
+        self,
+        features: int,
+        image_shape: tuple[int, int, int] | None,
+        hidden: int,
+        depth: int,
+        cnn_depth: int,
+        cnn_mults: tuple[int, ...],
+    ) -> None:
         super().__init__()
         self.mlp = DreamerV3MLP(features, None, depth=depth, num_cells=hidden) if features else None
         self.cnn = None
@@ -123,8 +151,9 @@ class MultiEncoder(nn.Module):
 class ImageDecoder(nn.Module):
     """``state [*B, S], belief [*B, D]`` -> image ``[*B, H, W, C]`` (TorchRL's decoder, channels moved last)."""
 
-    def __init__(self, in_features: int, image_shape: tuple[int, int, int], cnn_depth: int,
-                 cnn_mults: tuple[int, ...]) -> None:
+    def __init__(
+        self, in_features: int, image_shape: tuple[int, int, int], cnn_depth: int, cnn_mults: tuple[int, ...]
+    ) -> None:
         super().__init__()
         h, w, c = image_shape
         self.net = DreamerV3ImageDecoder(in_features, (c, h, w), depth=cnn_depth, mults=cnn_mults, num_blocks=1)
@@ -179,25 +208,46 @@ class DreamerNets(nn.Module):
         self.image_key = next((k for k in keys if is_image_spec(obs_spec[k])), None)
         self.vector_keys = [k for k in keys if k != self.image_key]
         specs = [obs_spec[k] for k in self.vector_keys]
-        self.featurizer = ObsFeaturizer([tuple(s.shape) for s in specs],
-                                        [None if s.dtype.is_floating_point else _classes(s) for s in specs])
+        self.featurizer = ObsFeaturizer(
+            [tuple(s.shape) for s in specs], [None if s.dtype.is_floating_point else _classes(s) for s in specs]
+        )
         image_shape = tuple(obs_spec[self.image_key].shape) if self.image_key else None
         mults = tuple(d.cnn_mults)
-        self.encoder = MultiEncoder(self.featurizer.out_features if self.vector_keys else 0, image_shape,
-                                    d.hidden, d.mlp_layers, d.cnn_depth, mults)  # fmt: skip
+        self.encoder = MultiEncoder(
+            self.featurizer.out_features if self.vector_keys else 0,
+            image_shape,
+            d.hidden,
+            d.mlp_layers,
+            d.cnn_depth,
+            mults,
+        )
         self.n_actions = n_actions
         self.stoch = d.stoch_categoricals * d.stoch_classes
         self.deter = d.deter
         feat = self.stoch + self.deter
-        self.prior = RSSMPriorV3(action_shape=(n_actions,), action_dim=n_actions, hidden_dim=d.hidden,
-                                 rnn_hidden_dim=d.deter, num_categoricals=d.stoch_categoricals,
-                                 num_classes=d.stoch_classes, unimix=d.unimix)  # fmt: skip
-        self.posterior = RSSMPosteriorV3(hidden_dim=d.hidden, rnn_hidden_dim=d.deter,
-                                         obs_embed_dim=self.encoder.out_features,
-                                         num_categoricals=d.stoch_categoricals, num_classes=d.stoch_classes,
-                                         use_rms_norm=True, unimix=d.unimix)  # fmt: skip
-        self.vector_decoder = (DreamerV3MLP(feat, self.featurizer.out_features, depth=d.mlp_layers,
-                                            num_cells=d.hidden) if self.vector_keys else None)  # fmt: skip
+        self.prior = RSSMPriorV3(
+            action_shape=(n_actions,),
+            action_dim=n_actions,
+            hidden_dim=d.hidden,
+            rnn_hidden_dim=d.deter,
+            num_categoricals=d.stoch_categoricals,
+            num_classes=d.stoch_classes,
+            unimix=d.unimix,
+        )
+        self.posterior = RSSMPosteriorV3(
+            hidden_dim=d.hidden,
+            rnn_hidden_dim=d.deter,
+            obs_embed_dim=self.encoder.out_features,
+            num_categoricals=d.stoch_categoricals,
+            num_classes=d.stoch_classes,
+            use_rms_norm=True,
+            unimix=d.unimix,
+        )
+        self.vector_decoder = (
+            DreamerV3MLP(feat, self.featurizer.out_features, depth=d.mlp_layers, num_cells=d.hidden)
+            if self.vector_keys
+            else None
+        )
         self.image_decoder = ImageDecoder(feat, image_shape, d.cnn_depth, mults) if self.image_key else None
         self.reward_head = DreamerV3MLP(feat, NUM_BINS, depth=d.mlp_layers, num_cells=d.hidden, outscale=0.0)
         self.continue_head = DreamerV3MLP(feat, 1, depth=d.mlp_layers, num_cells=d.hidden)
@@ -209,16 +259,31 @@ class DreamerNets(nn.Module):
 
     # -- parameter groups --------------------------------------------------------------------------------------
     def world_model_params(self) -> list[nn.Parameter]:
-        parts = [self.featurizer, self.encoder, self.prior, self.posterior, self.vector_decoder, self.image_decoder,
-                 self.reward_head, self.continue_head]  # fmt: skip
+        parts = [
+            self.featurizer,
+            self.encoder,
+            self.prior,
+            self.posterior,
+            self.vector_decoder,
+            self.image_decoder,
+            self.reward_head,
+            self.continue_head,
+        ]
         return [p for m in parts if m is not None for p in m.parameters()]
 
     def components(self) -> dict[str, nn.Module]:
         """Named parts for the parameter table."""
-        named = {"encoder": self.encoder, "rssm prior": self.prior, "rssm posterior": self.posterior,
-                 "vector decoder": self.vector_decoder, "image decoder": self.image_decoder,
-                 "reward head": self.reward_head, "continue head": self.continue_head, "actor": self.actor_net,
-                 "critic": self.value_net}  # fmt: skip
+        named = {
+            "encoder": self.encoder,
+            "rssm prior": self.prior,
+            "rssm posterior": self.posterior,
+            "vector decoder": self.vector_decoder,
+            "image decoder": self.image_decoder,
+            "reward head": self.reward_head,
+            "continue head": self.continue_head,
+            "actor": self.actor_net,
+            "critic": self.value_net,
+        }
         return {k: v for k, v in named.items() if v is not None}
 
     # -- tensordict wrappers -----------------------------------------------------------------------------------
@@ -226,8 +291,13 @@ class DreamerNets(nn.Module):
         mods = []
         enc_in = []
         if self.vector_keys:
-            mods.append(TensorDictModule(self.featurizer, in_keys=[(*prefix, k) for k in self.vector_keys],
-                                         out_keys=[(*prefix, "obs_features")]))  # fmt: skip
+            mods.append(
+                TensorDictModule(
+                    self.featurizer,
+                    in_keys=[(*prefix, k) for k in self.vector_keys],
+                    out_keys=[(*prefix, "obs_features")],
+                )
+            )
             enc_in.append((*prefix, "obs_features"))
         if self.image_key:
             enc_in.append((*prefix, self.image_key))
@@ -244,10 +314,16 @@ class DreamerNets(nn.Module):
 
     def _build_wrappers(self) -> None:
         nxt = ("next",)
-        prior = TensorDictModule(self.prior, in_keys=["state", "belief", "action_onehot"],
-                                 out_keys=[("next", "prior_logits"), ("next", "state"), ("next", "belief")])
-        posterior = TensorDictModule(self.posterior, in_keys=[("next", "belief"), ("next", "encoded_latents")],
-                                     out_keys=[("next", "posterior_logits"), ("next", "state")])
+        prior = TensorDictModule(
+            self.prior,
+            in_keys=["state", "belief", "action_onehot"],
+            out_keys=[("next", "prior_logits"), ("next", "state"), ("next", "belief")],
+        )
+        posterior = TensorDictModule(
+            self.posterior,
+            in_keys=[("next", "belief"), ("next", "encoded_latents")],
+            out_keys=[("next", "posterior_logits"), ("next", "state")],
+        )
         wm = [*self._encode(nxt), RSSMRolloutV3(prior, posterior, reset_key="is_init", action_key="action_onehot")]
         feats = [("next", "state"), ("next", "belief")]
         if self.vector_decoder is not None:
@@ -259,8 +335,9 @@ class DreamerNets(nn.Module):
         wm.append(TensorDictModule(self.continue_head, in_keys=feats, out_keys=[("next", "continue_pred")]))
         self.world_model = TensorDictSequential(*wm)
         # imagination: the prior alone steps the latent; reward from the decoded two-hot head
-        transition = TensorDictModule(self.prior, in_keys=["state", "belief", "action"],
-                                      out_keys=["prior_logits", "state", "belief"])
+        transition = TensorDictModule(
+            self.prior, in_keys=["state", "belief", "action"], out_keys=["prior_logits", "state", "belief"]
+        )
         self.imagination_model = WorldModelWrapper(transition, TensorDictSequential(*self._heads(())))
         self.continuation_model = TensorDictSequential(
             TensorDictModule(self.continue_head, in_keys=["state", "belief"], out_keys=["continue_logit"]),
@@ -277,35 +354,49 @@ class DreamerNets(nn.Module):
         return ProbabilisticTensorDictSequential(
             TensorDictModule(self.actor_net, in_keys=[state, belief], out_keys=["actor_raw_logits"]),
             TensorDictModule(self.unimix_logits, in_keys=["actor_raw_logits"], out_keys=["logits"]),
-            ProbabilisticTensorDictModule(in_keys=["logits"], out_keys=[action_key],
-                                          distribution_class=OneHotCategorical, return_log_prob=False,
-                                          default_interaction_type=InteractionType.RANDOM),
-        )  # fmt: skip
+            ProbabilisticTensorDictModule(
+                in_keys=["logits"],
+                out_keys=[action_key],
+                distribution_class=OneHotCategorical,
+                return_log_prob=False,
+                default_interaction_type=InteractionType.RANDOM,
+            ),
+        )
 
     def _collection_policy(self) -> TensorDictSequential:
         estimator = RSSMStateEstimatorV3(
-            self.prior, self.posterior,
+            self.prior,
+            self.posterior,
             in_keys=["state", "belief", "previous_action", "encoded_latents", "is_init"],
             out_keys=["post_state", "post_belief"],
         )
         carry = TensorDictModule(
-            CarryState(), in_keys=["post_state", "post_belief", "action_onehot", "is_init"],
+            CarryState(),
+            in_keys=["post_state", "post_belief", "action_onehot", "is_init"],
             out_keys=[("next", "state"), ("next", "belief"), ("next", "previous_action")],
         )
         to_index = TensorDictModule(OneHotToIndex(), in_keys=["action_onehot"], out_keys=["action"])
-        return TensorDictSequential(*self._encode(()), estimator,
-                                    self._actor("action_onehot", "post_state", "post_belief"), carry, to_index)
+        return TensorDictSequential(
+            *self._encode(()), estimator, self._actor("action_onehot", "post_state", "post_belief"), carry, to_index
+        )
 
     def primer(self) -> TensorDictPrimer:
         """Zeros for the carried ``state [S]``, ``belief [D]`` and ``previous_action [A]`` at every reset."""
-        return TensorDictPrimer({"state": Unbounded(shape=(self.stoch,)), "belief": Unbounded(shape=(self.deter,)),
-                                 "previous_action": Unbounded(shape=(self.n_actions,))},
-                                default_value=0.0, expand_specs=True)  # fmt: skip
+        return TensorDictPrimer(
+            {
+                "state": Unbounded(shape=(self.stoch,)),
+                "belief": Unbounded(shape=(self.deter,)),
+                "previous_action": Unbounded(shape=(self.n_actions,)),
+            },
+            default_value=0.0,
+            expand_specs=True,
+        )
 
     def imagination_env(self) -> DreamerEnv:
         """TorchRL's ``DreamerEnv`` over the prior and the reward head (batch size follows the reset tensordict)."""
-        env = DreamerEnv(self.imagination_model, prior_shape=torch.Size([self.stoch]),
-                         belief_shape=torch.Size([self.deter]))  # fmt: skip
+        env = DreamerEnv(
+            self.imagination_model, prior_shape=torch.Size([self.stoch]), belief_shape=torch.Size([self.deter])
+        )
         env.observation_spec = Composite(state=Unbounded(self.stoch), belief=Unbounded(self.deter))
         env.state_spec = Composite(state=Unbounded(self.stoch), belief=Unbounded(self.deter))
         env.action_spec = OneHot(self.n_actions)
@@ -323,19 +414,25 @@ def build_nets(cfg) -> DreamerNets:
     obs_spec, act_spec = probe_specs(cfg)
     for key in cfg.dreamer.observation_keys:
         if key not in obs_spec.keys():
-            raise ConfigError(f"dreamer.observation_keys: env '{cfg.env.id}' has no observation {key!r} (it has "
-                              f"{', '.join(sorted(map(str, obs_spec.keys())))})")  # fmt: skip
+            raise ConfigError(
+                f"dreamer.observation_keys: env '{cfg.env.id}' has no observation {key!r} (it has "
+                f"{', '.join(sorted(map(str, obs_spec.keys())))})"
+            )
     factor = 2 ** len(cfg.dreamer.cnn_mults)  # each conv stage halves the frame
     for key in cfg.dreamer.observation_keys:
         shape = tuple(obs_spec[key].shape)
         if is_image_spec(obs_spec[key]) and (shape[0] % factor or shape[1] % factor):
-            raise ConfigError(f"dreamer.observation_keys: image {key!r} is {shape[0]}x{shape[1]}, but the image "
-                              f"encoder's {len(cfg.dreamer.cnn_mults)} stages (dreamer.cnn_mults) need height and width "
-                              f"divisible by {factor}")  # fmt: skip
+            raise ConfigError(
+                f"dreamer.observation_keys: image {key!r} is {shape[0]}x{shape[1]}, but the image "
+                f"encoder's {len(cfg.dreamer.cnn_mults)} stages (dreamer.cnn_mults) need height and width "
+                f"divisible by {factor}"
+            )
     n = getattr(getattr(act_spec, "space", None), "n", None)
     if n is None or act_spec.shape != torch.Size([]):
-        raise ConfigError(f"env.id: DreamerV3 here needs a Categorical action (an index), '{cfg.env.id}' has "
-                          f"{type(act_spec).__name__}{tuple(act_spec.shape)}")  # fmt: skip
+        raise ConfigError(
+            f"env.id: DreamerV3 here needs a Categorical action (an index), '{cfg.env.id}' has "
+            f"{type(act_spec).__name__}{tuple(act_spec.shape)}"
+        )
     return DreamerNets(obs_spec, int(n), cfg.dreamer)
 
 
@@ -348,8 +445,19 @@ class DreamerLearner:
     """
 
     #: the scalars :meth:`update` returns (progress.csv columns, in this order)
-    LOG_KEYS = ("loss_model_kl", "loss_model_reco", "loss_model_reward", "loss_actor", "loss_value", "loss_model_dyn",
-                "loss_model_rep", "loss_model_continue", "actor_entropy", "return_scale", "imagined_return")
+    LOG_KEYS = (
+        "loss_model_kl",
+        "loss_model_reco",
+        "loss_model_reward",
+        "loss_actor",
+        "loss_value",
+        "loss_model_dyn",
+        "loss_model_rep",
+        "loss_model_continue",
+        "actor_entropy",
+        "return_scale",
+        "imagined_return",
+    )
 
     def __init__(self, nets: DreamerNets, d, optim) -> None:
         self.nets, self.d = nets, d
@@ -359,18 +467,34 @@ class DreamerLearner:
         if nets.image_key:
             targets, recos = [*targets, nets.image_key], [*recos, f"reco_{nets.image_key}"]
         self.model_loss = DreamerV3ModelLoss(
-            nets.world_model, kl_mode="separate", lambda_dynamic=d.lambda_dynamic,
-            lambda_representation=d.lambda_representation, free_bits=d.free_nats, unimix=d.unimix,
-            lambda_continue=1.0, reco_symlog=[False] * len(targets), num_reward_bins=NUM_BINS,
-        )  # fmt: skip
+            nets.world_model,
+            kl_mode="separate",
+            lambda_dynamic=d.lambda_dynamic,
+            lambda_representation=d.lambda_representation,
+            free_bits=d.free_nats,
+            unimix=d.unimix,
+            lambda_continue=1.0,
+            reco_symlog=[False] * len(targets),
+            num_reward_bins=NUM_BINS,
+        )
         self.model_loss.set_keys(pixels=targets, reco_pixels=recos)
         self.actor_loss = DreamerV3ActorLoss(
-            nets.actor, nets.value, nets.imagination_env(), continuation_model=nets.continuation_model,
-            imagination_horizon=d.horizon, use_reinforce=True, entropy_bonus=d.entropy_bonus,
-        )  # fmt: skip
+            nets.actor,
+            nets.value,
+            nets.imagination_env(),
+            continuation_model=nets.continuation_model,
+            imagination_horizon=d.horizon,
+            use_reinforce=True,
+            entropy_bonus=d.entropy_bonus,
+        )
         self.actor_loss.make_value_estimator(ValueEstimators.TDLambda, gamma=d.gamma, lmbda=d.lmbda)
-        self.value_loss = DreamerV3ValueLoss(nets.value, value_loss="two_hot", num_value_bins=NUM_BINS,
-                                             actor_loss=self.actor_loss, slow_critic_regularization=d.slow_critic)
+        self.value_loss = DreamerV3ValueLoss(
+            nets.value,
+            value_loss="two_hot",
+            num_value_bins=NUM_BINS,
+            actor_loss=self.actor_loss,
+            slow_critic_regularization=d.slow_critic,
+        )
         self.target = SoftUpdate(self.value_loss, tau=d.slow_critic_tau) if d.slow_critic else None
         self.params = {
             "model": nets.world_model_params(),
@@ -383,8 +507,7 @@ class DreamerLearner:
         self.stats = {k: StepStats(f"dreamer {k}") for k in self.params}
 
     def _step(self, name: str, loss: torch.Tensor) -> None:
-        optimizer_step(loss.reshape(()), self.optimizers[name], self.params[name], self.clips[name],
-                       self.stats[name])  # fmt: skip
+        optimizer_step(loss.reshape(()), self.optimizers[name], self.params[name], self.clips[name], self.stats[name])
 
     def update(self, batch) -> dict[str, torch.Tensor]:
         """One update on replay slices ``batch [B, L]``; returns detached scalar losses."""
@@ -399,18 +522,28 @@ class DreamerLearner:
         self._step("value", value_losses["loss_value"])
         if self.target is not None:
             self.target.step()
-        out = {"loss_model_kl": kl, "loss_model_dyn": losses["loss_model_dynamic"],
-               "loss_model_rep": losses["loss_model_representation"], "loss_model_reco": losses["loss_model_reco"],
-               "loss_model_reward": losses["loss_model_reward"], "loss_model_continue": losses["loss_model_continue"],
-               "loss_actor": actor_losses["loss_actor"], "actor_entropy": actor_losses["actor_entropy"],
-               "return_scale": actor_losses["return_scale"], "loss_value": value_losses["loss_value"],
-               "imagined_return": imagined["lambda_target"].mean()}  # fmt: skip
+        out = {
+            "loss_model_kl": kl,
+            "loss_model_dyn": losses["loss_model_dynamic"],
+            "loss_model_rep": losses["loss_model_representation"],
+            "loss_model_reco": losses["loss_model_reco"],
+            "loss_model_reward": losses["loss_model_reward"],
+            "loss_model_continue": losses["loss_model_continue"],
+            "loss_actor": actor_losses["loss_actor"],
+            "actor_entropy": actor_losses["actor_entropy"],
+            "return_scale": actor_losses["return_scale"],
+            "loss_value": value_losses["loss_value"],
+            "imagined_return": imagined["lambda_target"].mean(),
+        }
         return {k: out[k].detach().reshape(()) for k in self.LOG_KEYS}
 
     def state_dict(self) -> dict:
-        return {"optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
-                "retnorm": self.actor_loss.retnorm.state_dict(), "value_loss": self.value_loss.state_dict(),
-                "steps": {k: s.state_dict() for k, s in self.stats.items()}}  # fmt: skip
+        return {
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "retnorm": self.actor_loss.retnorm.state_dict(),
+            "value_loss": self.value_loss.state_dict(),
+            "steps": {k: s.state_dict() for k, s in self.stats.items()},
+        }
 
     def load_state_dict(self, state: dict) -> None:
         self.value_loss.load_state_dict(state["value_loss"])
@@ -472,8 +605,9 @@ class DreamerTrainer(RunLoop):
         self.nets = build_nets(cfg).to(self.device)
         self.learner = DreamerLearner(self.nets, d, cfg.optim)
         steps = d.frames_per_batch // cfg.env.num_envs
-        self.replay = SequenceReplay(d.replay_capacity, steps, d.batch_size, d.sequence_length,
-                                     list(d.observation_keys))
+        self.replay = SequenceReplay(
+            d.replay_capacity, steps, d.batch_size, d.sequence_length, list(d.observation_keys)
+        )
         self.updates, self._credit = 0, 0.0
         self._last: dict[str, float] = {}
         self._start(resume)
@@ -527,8 +661,15 @@ class DreamerTrainer(RunLoop):
 
 
 @torch.no_grad()
-def evaluate(path, *, episodes: int = 20, deterministic: bool = False, num_envs: int | None = None,
-                        seed: int = 12345, corrupt: list | None = None) -> dict:
+def evaluate(
+    path,
+    *,
+    episodes: int = 20,
+    deterministic: bool = False,
+    num_envs: int | None = None,
+    seed: int = 12345,
+    corrupt: list | None = None,
+) -> dict:
     """Episodes of a DreamerV3 checkpoint's collection policy (online posterior + actor) in its config's env.
 
     ``deterministic``: the actor takes its most likely action; the posterior latent is still sampled (as in
@@ -542,8 +683,16 @@ def evaluate(path, *, episodes: int = 20, deterministic: bool = False, num_envs:
     except RuntimeError as err:
         raise CheckpointError(f"checkpoint {path}: weights do not fit the networks of its own config") from err
     nets.eval()
-    result = run_episodes(cfg, nets.policy, [nets.primer()], episodes=episodes, deterministic=deterministic,
-                          num_envs=num_envs, seed=seed, corrupt=corrupt)  # fmt: skip
+    result = run_episodes(
+        cfg,
+        nets.policy,
+        [nets.primer()],
+        episodes=episodes,
+        deterministic=deterministic,
+        num_envs=num_envs,
+        seed=seed,
+        corrupt=corrupt,
+    )
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
 
 
@@ -555,4 +704,3 @@ def train(cfg: DreamerConfig, run_dir: str | Path | None = None, *, resume: bool
 def params(cfg: DreamerConfig) -> list[dict]:
     """Rows ``{"component", "trainable", "frozen"}`` per network, then ``Total`` (probes the env's specs)."""
     return parameter_rows(build_nets(cfg).components())
-

@@ -35,6 +35,8 @@ from torch import nn
 from torchrl.objectives import A2CLoss
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
+from freamer_rl.errors import CheckpointError
+from freamer_rl.run.loop import resolve_run_dir
 from freamer_rl.trainers.baselines.common import (
     STRUCTURAL,
     ActorCriticRunLoop,
@@ -42,8 +44,6 @@ from freamer_rl.trainers.baselines.common import (
     evaluate_actor_critic,
 )
 from freamer_rl.trainers.baselines.config import ImpalaConfig
-from freamer_rl.errors import CheckpointError
-from freamer_rl.run.loop import resolve_run_dir
 
 __all__ = ["ImpalaConfig", "ImpalaTrainer", "PolicyVersion", "STRUCTURAL", "train", "evaluate", "params"]
 
@@ -77,8 +77,14 @@ class ImpalaTrainer(ActorCriticRunLoop):
         p, s = cfg.optim, cfg.impala
         if s.optimizer == "rmsprop":
             self.optimizer = torch.optim.RMSprop(self.params, lr=p.lr, eps=p.eps, alpha=s.rmsprop_alpha)
-        self.loss = A2CLoss(self.actor, self.critic, entropy_coeff=s.entropy_coeff, critic_coeff=s.critic_coeff,
-                            loss_critic_type="l2", functional=False)  # fmt: skip
+        self.loss = A2CLoss(
+            self.actor,
+            self.critic,
+            entropy_coeff=s.entropy_coeff,
+            critic_coeff=s.critic_coeff,
+            loss_critic_type="l2",
+            functional=False,
+        )
         self.value_op = self.net.get_value_operator()
         event_dims = len(self.actor.spec["action"].shape) if self.actor.spec is not None else 0
         self.stamp = TensorDictModule(PolicyVersion(event_dims), in_keys=["action"], out_keys=[VERSION_KEY])
@@ -98,8 +104,10 @@ class ImpalaTrainer(ActorCriticRunLoop):
     def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
         saved = (ckpt["config"].get("impala") or {}).get("optimizer", "adam")
         if saved != self.cfg.impala.optimizer:  # Adam's moments are no RMSprop state: refused before loading
-            raise CheckpointError(f"checkpoint {path} was trained with impala.optimizer={saved}, this config has "
-                                  f"impala.optimizer={self.cfg.impala.optimizer}; resume with the same optimizer")
+            raise CheckpointError(
+                f"checkpoint {path} was trained with impala.optimizer={saved}, this config has "
+                f"impala.optimizer={self.cfg.impala.optimizer}; resume with the same optimizer"
+            )
         super()._load_model_state(ckpt, path)
 
     def _after_open(self, ckpt_path: Path | None) -> None:
@@ -121,9 +129,18 @@ class ImpalaTrainer(ActorCriticRunLoop):
             log_mu = data["action_log_prob"].unsqueeze(-1)
             nxt = data["next"]
             adv, target = vtrace_advantage_estimate(
-                self.cfg.impala.gamma, log_pi, log_mu, value, next_value, nxt["reward"], nxt["done"],
-                nxt["terminated"], rho_thresh=s.rho_clip, c_thresh=s.c_clip, time_dim=-2,
-            )  # fmt: skip
+                self.cfg.impala.gamma,
+                log_pi,
+                log_mu,
+                value,
+                next_value,
+                nxt["reward"],
+                nxt["done"],
+                nxt["terminated"],
+                rho_thresh=s.rho_clip,
+                c_thresh=s.c_clip,
+                time_dim=-2,
+            )
         return adv, target, (log_pi - log_mu).exp()
 
     def _learn(self, data: TensorDictBase) -> dict[str, float]:

@@ -18,9 +18,9 @@ from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.modules import ActorValueOperator
 
-from freamer_rl.trainers.baselines.config import NetworkConfig, network_init
 from freamer_rl.errors import EnvSetupError
 from freamer_rl.model.heads import build_actor, build_critic
+from freamer_rl.trainers.baselines.config import NetworkConfig, network_init
 
 __all__ = ["ObservationEncoder", "ActorCriticTrunk", "build_actor_critic", "reset_linear_layers"]
 
@@ -31,8 +31,13 @@ class ObservationEncoder(nn.Module):
     """``(*obs [*B, *shape_i]) -> [*B, hidden]``: a conv stack on the image (``image_index``) and/or an MLP on the
     flattened rest; ReLU after the convs, tanh (mlp) or ReLU (cnn) after the last linear layer."""
 
-    def __init__(self, shapes: list[tuple[int, ...]], hidden: int, image_index: int | None = None,
-                 channels: tuple[int, ...] = (32, 64, 64)) -> None:  # fmt: skip
+    def __init__(
+        self,
+        shapes: list[tuple[int, ...]],
+        hidden: int,
+        image_index: int | None = None,
+        channels: tuple[int, ...] = (32, 64, 64),
+    ) -> None:
         super().__init__()
         self.shapes = [tuple(s) for s in shapes]
         self.image_index = image_index
@@ -41,11 +46,19 @@ class ObservationEncoder(nn.Module):
         if image_index is not None:
             h, w, c = self.shapes[image_index]
             if min(h, w) < 36:  # 8x8 stride 4, 4x4 stride 2, 3x3: the smallest frame that leaves one cell
-                raise EnvSetupError(f"network.kind=cnn: the image is {h}x{w}; the Nature-DQN conv stack needs at "
-                                    "least 36x36")  # fmt: skip
+                raise EnvSetupError(
+                    f"network.kind=cnn: the image is {h}x{w}; the Nature-DQN conv stack needs at least 36x36"
+                )
             c1, c2, c3 = channels
-            self.conv = nn.Sequential(nn.Conv2d(c, c1, 8, stride=4), nn.ReLU(), nn.Conv2d(c1, c2, 4, stride=2),
-                                      nn.ReLU(), nn.Conv2d(c2, c3, 3, stride=1), nn.ReLU(), nn.Flatten())  # fmt: skip
+            self.conv = nn.Sequential(
+                nn.Conv2d(c, c1, 8, stride=4),
+                nn.ReLU(),
+                nn.Conv2d(c1, c2, 4, stride=2),
+                nn.ReLU(),
+                nn.Conv2d(c2, c3, 3, stride=1),
+                nn.ReLU(),
+                nn.Flatten(),
+            )
             with torch.no_grad():
                 flat += self.conv(torch.zeros(1, c, h, w)).shape[-1]
         act = nn.ReLU() if self.conv is not None else nn.Tanh()
@@ -80,8 +93,10 @@ class ActorCriticTrunk(nn.Module):
 def _image_index(keys: list[str], shapes: list[tuple[int, ...]]) -> int:
     images = [i for i, s in enumerate(shapes) if len(s) == 3 and s[-1] in (1, 3, 4)]
     if len(images) != 1:
-        raise EnvSetupError(f"network.kind=cnn needs exactly one image key ([H, W, C]) among network.observation_keys"
-                            f" {keys}; shapes {shapes}")  # fmt: skip
+        raise EnvSetupError(
+            f"network.kind=cnn needs exactly one image key ([H, W, C]) among network.observation_keys"
+            f" {keys}; shapes {shapes}"
+        )
     return images[0]
 
 
@@ -100,8 +115,7 @@ def build_actor_critic(observation_spec, action_spec, net: NetworkConfig) -> Act
         raise EnvSetupError(f"network.observation_keys: {missing} not in the env's observations ({known})")
     shapes = [tuple(observation_spec[k].shape) for k in net.observation_keys]
     image = _image_index(net.observation_keys, shapes) if net.kind == "cnn" else None
-    trunk = ActorCriticTrunk(lambda: ObservationEncoder(shapes, net.hidden, image, tuple(net.cnn_channels)),
-                             net.shared)  # fmt: skip
+    trunk = ActorCriticTrunk(lambda: ObservationEncoder(shapes, net.hidden, image, tuple(net.cnn_channels)), net.shared)
     common = TensorDictModule(trunk, in_keys=list(net.observation_keys), out_keys=[PI, V])
     actor = build_actor(action_spec, net.hidden, net.hidden, in_key=PI)
     critic = build_critic(net.hidden, net.hidden, in_key=V)

@@ -21,9 +21,14 @@ from tensordict import TensorDictBase
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from freamer_rl.trainers.baselines.common import STRUCTURAL, ActorCriticRunLoop, actor_critic_params, evaluate_actor_critic
-from freamer_rl.trainers.baselines.config import PPOBaselineConfig
 from freamer_rl.run.loop import resolve_run_dir
+from freamer_rl.trainers.baselines.common import (
+    STRUCTURAL,
+    ActorCriticRunLoop,
+    actor_critic_params,
+    evaluate_actor_critic,
+)
+from freamer_rl.trainers.baselines.config import PPOBaselineConfig
 
 __all__ = ["PPOBaselineConfig", "PPOBaselineTrainer", "STRUCTURAL", "train", "evaluate", "params"]
 
@@ -36,11 +41,19 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
     def __init__(self, cfg: PPOBaselineConfig, run_dir: str | Path, *, resume: bool = True) -> None:
         super().__init__(cfg, run_dir)
         p = cfg.ppo
-        self.loss = ClipPPOLoss(self.actor, self.critic, clip_epsilon=p.clip_epsilon, entropy_coeff=p.entropy_coeff,
-                                critic_coeff=p.critic_coeff, loss_critic_type="l2",
-                                normalize_advantage=p.normalize_advantage, functional=False)  # fmt: skip
-        self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=self.net.get_value_operator(),
-                       average_gae=False)  # fmt: skip
+        self.loss = ClipPPOLoss(
+            self.actor,
+            self.critic,
+            clip_epsilon=p.clip_epsilon,
+            entropy_coeff=p.entropy_coeff,
+            critic_coeff=p.critic_coeff,
+            loss_critic_type="l2",
+            normalize_advantage=p.normalize_advantage,
+            functional=False,
+        )
+        self.gae = GAE(
+            gamma=p.gamma, lmbda=p.gae_lambda, value_network=self.net.get_value_operator(), average_gae=False
+        )
         self._start(resume)
 
     @property
@@ -57,8 +70,7 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         return self._minibatch_steps(flat[idx] for epoch in epochs for idx in epoch)
 
 
-def train(cfg: PPOBaselineConfig, run_dir: str | Path | None = None, *,
-                       resume: bool = True) -> dict[str, Any]:  # fmt: skip
+def train(cfg: PPOBaselineConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
     """Train the PPO baseline of the recipe; returns the summary (also ``summary.json``)."""
     return PPOBaselineTrainer(cfg, resolve_run_dir(cfg, run_dir), resume=resume).train()
 
