@@ -271,25 +271,41 @@ def build_filter_mix_memory(
     steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=[fused_key, "fused_modalities"]))
     if placement == "post":  # one refiner on the mixed vector (refinement after fusion)
         steps.append(KeyedModule(refiners["fused"], in_keys=[fused_key], out_keys=["fused"]))
-    memory = None
-    if dnc:
-        memory = DNCModule(
-            input_dim=dim,
-            memory_slots=memory_slots,
-            memory_width=memory_width,
-            output_dim=d_out,
-            in_key="fused",
-            out_key=out_key,
-            memory_key=memory_key,
-            is_init_key=is_init_key,
-            compile=compile,
-        )
-        steps.append(memory)
-    else:
-        steps.append(
-            KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"], out_keys=[out_key])
-        )
+    memory = _layer4(dnc, dim, d_out, memory_slots, memory_width, out_key, memory_key, is_init_key, compile)
+    steps.append(memory if memory is not None else _projection(dim, d_out, out_key))
     return steps, refiners, fuser, memory
+
+
+def _layer4(
+    dnc: bool,
+    dim: int,
+    d_out: int,
+    memory_slots: int,
+    memory_width: int,
+    out_key: NestedKey,
+    memory_key: NestedKey,
+    is_init_key: NestedKey,
+    compile: bool,
+) -> DNCModule | None:
+    """Layer 4's DNC reading ``"fused"`` (App. F.1), or None without memory."""
+    if not dnc:
+        return None
+    return DNCModule(
+        input_dim=dim,
+        memory_slots=memory_slots,
+        memory_width=memory_width,
+        output_dim=d_out,
+        in_key="fused",
+        out_key=out_key,
+        memory_key=memory_key,
+        is_init_key=is_init_key,
+        compile=compile,
+    )
+
+
+def _projection(dim: int, d_out: int, out_key: NestedKey) -> KeyedModule:
+    """The stateless stand-in for the DNC: ``Linear(d, D_out) -> GELU`` on ``"fused"``."""
+    return KeyedModule(nn.Sequential(nn.Linear(dim, d_out), nn.GELU()), in_keys=["fused"], out_keys=[out_key])
 
 
 #: initial gate logit of the one refiner after the fuser (``placement: post``; ``model.flow.gate_init.fused``)

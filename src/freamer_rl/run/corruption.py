@@ -36,7 +36,7 @@ from torchrl.envs.transforms import Transform
 from freamer_rl.config.sections import CORRUPTION_KINDS
 from freamer_rl.errors import ConfigError
 
-__all__ = ["CORRUPTION_KINDS", "ModalityCorruption", "corruption_transforms"]
+__all__ = ["CORRUPTION_KINDS", "ModalityCorruption", "corruption_transforms", "eval_entries"]
 
 _INTEGER_ONLY = {"salt"}
 _FLOAT_OR_PIXELS = {"gaussian"}
@@ -201,6 +201,12 @@ class ModalityCorruption(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self._corrupt(tensordict, None)
+
+
+def eval_entries(config_entries: list, override: list | None) -> list:
+    """The corruption of an evaluation: ``override`` (``--corrupt``) when given, else the recipe's ``env.corrupt``
+    entries whose ``when`` is eval or both."""
+    return [c for c in config_entries if c.when in ("eval", "both")] if override is None else list(override)
 
 
 def corruption_transforms(entries: list, phase: str) -> list[ModalityCorruption]:

@@ -17,7 +17,7 @@ from freamer_rl.config.loader import config_from_dict
 from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import load_checkpoint
-from freamer_rl.run.corruption import corruption_transforms
+from freamer_rl.run.corruption import corruption_transforms, eval_entries
 from freamer_rl.run.envs import make_batched_env
 from freamer_rl.run.metrics import LogMeans
 
@@ -56,7 +56,7 @@ def run_episodes(
     entries for evaluation (``when: eval`` or ``both``). ``step_metrics(td) -> {name: scalar tensor}`` is called on
     every step the policy wrote (e.g. FreamerV1's refiner displacement); the result holds the means over steps."""
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
-    entries = [c for c in cfg.env.corrupt if c.when in ("eval", "both")] if corrupt is None else list(corrupt)
+    entries = eval_entries(cfg.env.corrupt, corrupt)
     corruption = corruption_transforms([dataclasses.replace(c, when="eval") for c in entries], "eval")
     env = make_batched_env(cfg, [*corruption, *primers], seed, num_envs=n_envs)
     success_fn = env_registry.get_adapter(cfg.env.adapter).success

@@ -39,7 +39,6 @@ from typing import Any, ClassVar
 import torch
 from tensordict import TensorDictBase
 from torchrl.modules import set_recurrent_mode
-from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from freamer_rl.config.checks import Range
@@ -68,13 +67,14 @@ from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
 from freamer_rl.model.weights import load_model_state, transfer_weights
-from freamer_rl.run.corruption import corruption_transforms
+from freamer_rl.run.corruption import corruption_transforms, eval_entries
 from freamer_rl.run.envs import check_env_writes, probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
 from freamer_rl.run.metrics import LogMeans
 from freamer_rl.run.optim import StepStats, optimizer_step, restore_optimizer, scheduled_lr, set_lr
 from freamer_rl.run.sequences import sequence_replay_buffer, split_sequences
+from freamer_rl.trainers.ppo_loss import clip_ppo_loss
 
 logger = logging.getLogger(__name__)
 
@@ -158,18 +158,9 @@ class Trainer(RunLoop):
         self.modules.actor_value.to(self.device)
         self.modules.actor_value.eval()  # see module docstring: deterministic trunk for consistent log-probs
         p = cfg.ppo
-        self.ppo_loss = ClipPPOLoss(
-            self.modules.actor,
-            self.modules.critic,
-            clip_epsilon=p.clip_epsilon,
-            entropy_coeff=p.entropy_coeff,
-            critic_coeff=p.critic_coeff,
-            loss_critic_type="l2",
-            normalize_advantage=p.normalize_advantage,
-            functional=False,
-            # per-step losses, weighted by the success buffer's truncated importance weights (App. G.3)
-            reduction="none" if cfg.success_buffer.enabled else None,
-        ).to(self.device)
+        # per-step losses with the success buffer, weighted by its truncated importance weights (App. G.3)
+        reduction = "none" if cfg.success_buffer.enabled else None
+        self.ppo_loss = clip_ppo_loss(self.modules.actor, self.modules.critic, p, reduction=reduction).to(self.device)
         self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=None, average_gae=False)
         # reward shaping (App. G.1-G.2, A.5): PPO trains on ("next", "shaped_reward"); success uses the env reward
         self.shaper = RewardShaper(
@@ -436,7 +427,7 @@ def evaluate(
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()
     # ("embed", m) entries (key "embed.<m>", kind gaussian) perturb an embedding before its refiner (Table 13)
-    entries = [c for c in cfg.env.corrupt if c.when in ("eval", "both")] if corrupt is None else list(corrupt)
+    entries = eval_entries(cfg.env.corrupt, corrupt)
     embed = {c.key.split(".", 1)[1]: c.level for c in entries if c.key.startswith("embed.")}
     if any(c.kind != "gaussian" for c in entries if c.key.startswith("embed.")):
         raise ConfigError("env.corrupt: an embedding (embed.<modality>) takes kind gaussian only")

@@ -18,7 +18,6 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from freamer_rl.run.loop import resolve_run_dir
@@ -29,6 +28,7 @@ from freamer_rl.trainers.baselines.common import (
     evaluate_actor_critic,
 )
 from freamer_rl.trainers.baselines.config import PPOBaselineConfig
+from freamer_rl.trainers.ppo_loss import clip_ppo_loss
 
 __all__ = ["PPOBaselineConfig", "PPOBaselineTrainer", "STRUCTURAL", "train", "evaluate", "params"]
 
@@ -41,16 +41,7 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
     def __init__(self, cfg: PPOBaselineConfig, run_dir: str | Path, *, resume: bool = True) -> None:
         super().__init__(cfg, run_dir)
         p = cfg.ppo
-        self.loss = ClipPPOLoss(
-            self.actor,
-            self.critic,
-            clip_epsilon=p.clip_epsilon,
-            entropy_coeff=p.entropy_coeff,
-            critic_coeff=p.critic_coeff,
-            loss_critic_type="l2",
-            normalize_advantage=p.normalize_advantage,
-            functional=False,
-        )
+        self.loss = clip_ppo_loss(self.actor, self.critic, p)
         self.gae = GAE(
             gamma=p.gamma, lmbda=p.gae_lambda, value_network=self.net.get_value_operator(), average_gae=False
         )
