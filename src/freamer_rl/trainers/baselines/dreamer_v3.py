@@ -23,7 +23,6 @@ from freamer_rl.run.metrics import LogMeans
 from freamer_rl.run.optim import StepStats, optimizer_step
 from freamer_rl.run.params import parameter_rows
 from freamer_rl.trainers.baselines.config import ARCHITECTURE_FIELDS, DreamerConfig
-
 from freamer_rl.trainers.baselines.dreamer_v3_nets import NUM_BINS, DreamerNets, is_image_spec
 
 logger = logging.getLogger(__name__)
