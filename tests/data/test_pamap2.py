@@ -1,4 +1,4 @@
-"""PAMAP2 loader, features and synthetic generator (freamer_rl.data.pamap2)."""
+"""PAMAP2 loader, features and synthetic generator (freamer_rl.data)."""
 
 from __future__ import annotations
 

@@ -6,6 +6,7 @@ A recipe is a YAML mapping whose keys mirror a schema dataclass (a subclass of
 then every number against the schema's ``RANGES`` table and the schema's cross-field validator (:data:`VALIDATORS`).
 A key an earlier release used is refused with the key that replaced it (the schema's ``RENAMED`` table).
 
+    from freamer_rl.trainers.minigrid_ppo import FreamerConfig
     cfg = load_config("recipes/minigrid_multiroom_n2s4.yaml", ["optim.lr=3e-4", "run.seed=1"], schema=FreamerConfig)
 
 This module knows no trainer: which schema a recipe's ``trainer:`` key names is the trainer registry's business
@@ -14,6 +15,7 @@ This module knows no trainer: which schema a recipe's ``trainer:`` key names is 
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import types
 import typing
@@ -156,8 +158,12 @@ DEFAULT_TRAINER = "minigrid_ppo"
 VALIDATORS: dict[type, Callable[[Any], None]] = {}
 
 
-def config_from_dict(data: dict | None, schema: type) -> Any:
-    """Build and validate a ``schema`` instance (default :class:`FreamerConfig`) from a plain mapping.
+def config_from_dict(data: dict | None, schema: type, *, migrate: bool = False) -> Any:
+    """Build and validate a ``schema`` instance from a plain mapping.
+
+    ``migrate=True`` is for configs the library wrote itself (a checkpoint's ``config`` entry): keys an earlier release
+    used are moved to their new names (the schema's ``RENAMED`` table) and top-level sections the schema no longer has
+    are dropped (the baselines' schemas once carried FreamerV1's), instead of being refused as in a recipe.
 
     Unknown keys and wrong types raise :class:`ConfigError` naming the dotted field; then the schema's registered
     validator (:data:`VALIDATORS`) runs its cross-field checks. A top-level ``trainer:`` entry is not a field of
@@ -168,6 +174,8 @@ def config_from_dict(data: dict | None, schema: type) -> Any:
     if not isinstance(data, dict):
         raise ConfigError(f"a recipe must be a YAML mapping, got {type(data).__name__}")
     data = {k: v for k, v in data.items() if k != TRAINER_KEY}
+    if migrate:
+        data = migrate_config(data, schema)
     _refuse_renamed(data, getattr(schema, "RENAMED", {}))
     cfg = _build(schema, data)
     if schema not in VALIDATORS:
@@ -210,6 +218,27 @@ def load_config(path: str | Path | None, overrides: list[str] | None = None, *, 
     source = str(path) if path is not None else "defaults"
     _, data = split_trainer(read_recipe(path, overrides), source)
     return config_from_dict(data, schema)
+
+
+def migrate_config(data: dict, schema: type) -> dict:
+    """A saved config mapping in the current layout of ``schema``: every old dotted key of ``schema.RENAMED`` moved
+    to its new key (unless that is set already), then sections ``schema`` does not have dropped."""
+    data = copy.deepcopy(data)
+    for old, new in getattr(schema, "RENAMED", {}).items():
+        *path, last = old.split(".")
+        node = data
+        for part in path:
+            node = node.get(part) if isinstance(node, dict) else None
+        if not isinstance(node, dict) or last not in node:
+            continue
+        value = node.pop(last)
+        *new_path, new_last = new.split(".")
+        target = data
+        for part in new_path:
+            target = target.setdefault(part, {})
+        target.setdefault(new_last, value)
+    fields = {f.name for f in dataclasses.fields(schema)}
+    return {k: v for k, v in data.items() if k in fields}
 
 
 def _refuse_renamed(data: dict, renamed: dict[str, str]) -> None:

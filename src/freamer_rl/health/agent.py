@@ -21,13 +21,13 @@ from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
 from torchrl.envs.transforms import TensorDictPrimer
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
+from freamer_rl.config.loader import config_from_dict
 from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.health.config import (
     NUM_ACTIONS,
     OBS_KEYS,
     HealthConfig,
     HealthEncoderConfig,
-    health_config_from_dict,
     health_config_to_dict,
 )
 from freamer_rl.health.config import explore_probs as _explore_probs
@@ -349,7 +349,7 @@ def load_agent(path: str | Path) -> HealthAgent:
         path = final if final.is_file() else (latest_checkpoint(path) or final)
     payload = read_checkpoint(path, fmt=CHECKPOINT_FORMAT)  # weights_only: a crafted file cannot run code
     try:
-        agent = build_agent(health_config_from_dict(payload["config"]))
+        agent = build_agent(config_from_dict(payload["config"], HealthConfig, migrate=True))
         agent.world_model.load_state_dict(payload["world_model"])
         agent.actor.load_state_dict(payload["actor"])
         agent.value.load_state_dict(payload["value"])

@@ -7,8 +7,10 @@ field named); :func:`corruption_transforms` builds the list a trainer (``when`` 
 
 Kinds (``level`` means):
 
-* ``gaussian`` -- ``x + level * s * N(0, 1)`` with ``s`` the key's running std (all entries, updated from the clean
-  values), so ``level`` means the same on pixels and on vectors; uint8 values are rounded and clipped to 0..255.
+* ``gaussian`` -- ``x + level * s * N(0, 1)`` with ``s`` the key's running std (all entries of every env pooled,
+  updated from the values this transform receives, from the first reset of the run on: an evaluation measures it on
+  its own clean observations), so ``level`` means the same on pixels and on vectors; uint8 values are rounded and
+  clipped to 0..255. Several entries on one key apply in order, each measuring what the previous one produced.
 * ``salt`` -- integer keys (grid indices, mission tokens): each entry is replaced with probability ``level`` by a
   uniform random value of the key's spec range (salt-and-pepper / random-token replacement).
 * ``dropout`` -- with probability ``level`` per env and step the whole key is zeroed; ``<key>_present`` (float

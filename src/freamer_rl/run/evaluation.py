@@ -30,7 +30,7 @@ def read_checkpoint_config(path: Path, schema: type) -> tuple[dict[str, Any], An
     """A checkpoint (read with ``weights_only``) and its config built with ``schema``."""
     ckpt = load_checkpoint(path)
     try:
-        cfg = config_from_dict(ckpt["config"], schema)
+        cfg = config_from_dict(ckpt["config"], schema, migrate=True)  # a checkpoint of an earlier release too
     except ConfigError as err:
         raise CheckpointError(f"checkpoint {path} holds a config this version cannot read: {err}") from err
     return ckpt, cfg

@@ -15,7 +15,7 @@ from freamer_rl.health.trainer import run_health
 __all__ = ["HealthConfig", "STRUCTURAL", "train", "evaluate", "params"]
 
 #: config sections that shape the health agent's weights (a resume needs them equal)
-STRUCTURAL = ("env", "encoder", "world_model")
+STRUCTURAL = ("env", "encoder", "world_model", "imagination.policy_hidden")
 
 
 def train(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
