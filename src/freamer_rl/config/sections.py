@@ -205,6 +205,15 @@ def check_base(cfg: BaseConfig) -> None:
     check_corruption(cfg.env.corrupt)
 
 
+def check_corruption_kind(kind: str, level: Any, where: str) -> None:
+    """``kind`` is one of :data:`CORRUPTION_KINDS` and ``level`` a number it takes; one ConfigError line otherwise."""
+    if kind not in CORRUPTION_KINDS:
+        raise ConfigError(f"{where}.kind: expected one of {', '.join(CORRUPTION_KINDS)}, got {kind!r}")
+    ok, expected = CORRUPTION_KINDS[kind]
+    if not (isinstance(level, (int, float)) and math.isfinite(level) and ok(level)):
+        raise ConfigError(f"{where}.level: {kind} needs {expected}, got {level!r}")
+
+
 def check_corruption(entries: list[CorruptionConfig]) -> None:
     """Every ``env.corrupt`` entry's kind, level and phase (whether the key exists and fits the kind is checked when
     the env is built)."""
@@ -212,11 +221,7 @@ def check_corruption(entries: list[CorruptionConfig]) -> None:
         where = f"env.corrupt[{i}]"
         if not c.key:
             raise ConfigError(f"{where}.key: name the observation key to corrupt (e.g. pixels, grid, mission_tokens)")
-        if c.kind not in CORRUPTION_KINDS:
-            raise ConfigError(f"{where}.kind: expected one of {', '.join(CORRUPTION_KINDS)}, got {c.kind!r}")
-        ok, expected = CORRUPTION_KINDS[c.kind]
-        if not (math.isfinite(c.level) and ok(c.level)):
-            raise ConfigError(f"{where}.level: {c.kind} needs {expected}, got {c.level!r}")
+        check_corruption_kind(c.kind, c.level, where)
         if c.when not in CORRUPTION_WHEN:
             raise ConfigError(f"{where}.when: expected train, eval or both, got {c.when!r}")
 

@@ -35,10 +35,10 @@ from tensordict.utils import NestedKey
 from torchrl.data import Unbounded
 from torchrl.envs.transforms import Transform
 
-from freamer_rl.config.sections import CORRUPTION_KINDS
+from freamer_rl.config.sections import check_corruption_kind
 from freamer_rl.errors import ConfigError
 
-__all__ = ["CORRUPTION_KINDS", "ModalityCorruption", "corruption_transforms", "eval_entries"]
+__all__ = ["ModalityCorruption", "corruption_transforms", "eval_entries"]
 
 _INTEGER_ONLY = {"salt"}
 _FLOAT_OR_PIXELS = {"gaussian"}
@@ -75,11 +75,7 @@ class ModalityCorruption(Transform):
     entry in errors (``env.corrupt[0]``)."""
 
     def __init__(self, key: NestedKey, kind: str, level: float, where: str = "env.corrupt") -> None:
-        if kind not in CORRUPTION_KINDS:
-            raise ConfigError(f"{where}.kind: expected one of {', '.join(CORRUPTION_KINDS)}, got {kind!r}")
-        ok, expected = CORRUPTION_KINDS[kind]
-        if not (isinstance(level, (int, float)) and math.isfinite(level) and ok(level)):
-            raise ConfigError(f"{where}.level: {kind} needs {expected}, got {level!r}")
+        check_corruption_kind(kind, level, where)
         super().__init__(in_keys=[key], out_keys=[key])
         self.key, self.kind, self.level, self.where = key, kind, float(level), where
         self.present_key = f"{key}_present" if isinstance(key, str) else (*key[:-1], f"{key[-1]}_present")
@@ -211,10 +207,11 @@ def eval_entries(config_entries: list, override: list | None) -> list:
     return [c for c in config_entries if c.when in ("eval", "both")] if override is None else list(override)
 
 
-def corruption_transforms(entries: list, phase: str) -> list[ModalityCorruption]:
-    """The ``env.corrupt`` entries that apply in ``phase`` (``train`` or ``eval``) as transforms, in order."""
+def corruption_transforms(entries: list, phase: str | None) -> list[ModalityCorruption]:
+    """The ``env.corrupt`` entries that apply in ``phase`` (``train`` or ``eval``; None: every entry, already chosen)
+    as transforms, in order."""
     return [
         ModalityCorruption(e.key, e.kind, e.level, where=f"env.corrupt[{i}]")
         for i, e in enumerate(entries)
-        if e.when in (phase, "both")
+        if phase is None or e.when in (phase, "both")
     ]

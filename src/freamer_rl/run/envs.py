@@ -3,14 +3,16 @@
 One env (:func:`make_single_env`), the batched env a collector steps (:func:`make_batched_env`: ``env.num_envs``
 copies in one process plus InitTracker, StepCounter, RewardSum and the transforms a trainer hands in: its model's
 state primers, a reward-shaping transform), and the env's unbatched specs (:func:`probe_specs`) that factories build
-policies from. ``env.imports`` are imported first, so a user's own package can register its gymnasium ids; a config
-asking for an entry the adapter cannot compute (:data:`ENV_WRITTEN`, ``EnvAdapter.writes``) is refused first.
+policies from. ``env.imports`` are imported first, so a user's own package can register its gymnasium ids. A config
+asking for an entry the adapter cannot compute (:data:`ENV_WRITTEN`, ``EnvAdapter.writes``) is refused when it is
+loaded (:func:`check_env_writes`, called by the trainer's validator).
 """
 
 from __future__ import annotations
 
 import functools
 import importlib
+from collections.abc import Sequence
 from typing import Any
 
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, StepCounter, TransformedEnv
@@ -59,7 +61,11 @@ def check_env_writes(cfg: Any) -> None:
 def import_env_modules(env: Any) -> None:
     """Import every module of ``env.imports`` (a module that registers gymnasium ids on import); one ConfigError
     line naming the module when it cannot be imported."""
-    for name in env.imports:
+    _import_modules(env.imports)
+
+
+def _import_modules(names: Sequence[str]) -> None:
+    for name in names:
         try:
             importlib.import_module(name)
         except ImportError as err:
@@ -75,13 +81,11 @@ def env_options(cfg: Any) -> dict[str, Any]:
 
 def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
     import_env_modules(cfg.env)
-    check_env_writes(cfg)
     return env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
 
 
 def _single_env_fn(adapter: str, env_id: str, options: dict, imports: tuple[str, ...]) -> EnvBase:
-    for name in imports:  # in a worker process the user's registering modules are not imported yet
-        importlib.import_module(name)
+    _import_modules(imports)  # in a worker process the user's registering modules are not imported yet
     return env_registry.make_env(adapter, env_id, **options)
 
 
@@ -91,7 +95,6 @@ def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None
     then InitTracker, StepCounter, RewardSum and copies of ``transforms`` (after RewardSum, so episode returns stay
     the env's own)."""
     import_env_modules(cfg.env)
-    check_env_writes(cfg)
     n = num_envs or cfg.env.num_envs
     adapter = env_registry.get_adapter(cfg.env.adapter)
     if adapter.make_batched_env is not None:

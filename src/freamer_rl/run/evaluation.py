@@ -57,7 +57,7 @@ def run_episodes(
     every step the policy wrote (e.g. FreamerV1's refiner displacement); the result holds the means over steps."""
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
     entries = eval_entries(cfg.env.corrupt, corrupt)
-    corruption = corruption_transforms([dataclasses.replace(c, when="eval") for c in entries], "eval")
+    corruption = corruption_transforms(entries, None)
     env = make_batched_env(cfg, [*corruption, *primers], seed, num_envs=n_envs)
     success_fn = env_registry.get_adapter(cfg.env.adapter).success
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM

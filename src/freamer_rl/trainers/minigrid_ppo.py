@@ -428,10 +428,11 @@ def evaluate(
     modules.actor_value.eval()
     # ("embed", m) entries (key "embed.<m>", kind gaussian) perturb an embedding before its refiner (Table 13)
     entries = eval_entries(cfg.env.corrupt, corrupt)
-    embed = {c.key.split(".", 1)[1]: c.level for c in entries if c.key.startswith("embed.")}
-    if any(c.kind != "gaussian" for c in entries if c.key.startswith("embed.")):
+    embedded = [c for c in entries if c.key.startswith("embed.")]
+    if any(c.kind != "gaussian" for c in embedded):
         raise ConfigError("env.corrupt: an embedding (embed.<modality>) takes kind gaussian only")
-    corrupt = [c for c in entries if not c.key.startswith("embed.")]
+    embed = {c.key.split(".", 1)[1]: c.level for c in embedded}
+    corrupt = [c for c in entries if c not in embedded]
     policy = modules.policy_with_embedding_noise(embed) if embed else modules.policy
     result = run_episodes(
         cfg,
