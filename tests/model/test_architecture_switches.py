@@ -13,7 +13,8 @@ from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.run.envs import make_batched_env
 from freamer_rl.trainers.minigrid_ppo import build_modules, params, train
-from freamer_rl.trainers.registry import load_config
+from freamer_rl.run.checkpoint import load_checkpoint
+from freamer_rl.trainers.registry import evaluate_any, load_config, resolve_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
@@ -89,6 +90,11 @@ def test_parameter_table_counts_each_arm():
         (["model.flow.placement=post"], {"gate_fused", "fm_fused", "loss_fm"}, {"gate_state"}),
         (["model.flow.placement=off", "model.dnc.enabled=false"], set(), {"gate_state", "loss_fm", "gate_fused"}),
         (["model.fusion=concat"], {"gate_state", "loss_fm"}, {"loss_smooth"}),
+        (
+            ["model.flow.reliability=both", "model.flow.noise_scale=relative"],
+            {"gate_input_state", "weight_state", "weight_language", "fm_displacement_reward"},
+            {"gate_fused"},
+        ),
     ],
 )
 def test_each_arm_trains_through_the_trainer(overrides, columns, absent, tmp_path):
@@ -112,11 +118,36 @@ def test_resume_with_another_placement_is_refused(tmp_path):
         ("model.fusion=attention", "model.fusion: expected one of fno, concat, mean"),
         ("model.fusion_hidden=64", "model.fusion_hidden: got 64, but only model.fusion=concat has an MLP"),
         ("model.flow.gate_init.imu=-1", "model.flow.gate_init: unknown modality 'imu'"),
+        ("model.flow.reliability=sometimes", "model.flow.reliability: expected one of off, gate, weight, both"),
+        ("model.flow.noise_scale=huge", "model.flow.noise_scale: expected one of absolute, relative"),
+        ("model.flow.reliability_margin=-1", "model.flow.reliability_margin"),
     ],
 )
 def test_bad_switches_are_one_line(override, message):
     with pytest.raises(ConfigError, match=message):
         load_config(TINY, [override])
+
+
+@pytest.mark.parametrize(
+    "overrides, message",
+    [
+        (["model.flow.reliability=weight", "model.flow.placement=post"], "needs model.flow.placement=pre"),
+        (["model.flow.reliability=gate", "aux.lambda_fm=0"], "give aux.lambda_fm > 0"),
+    ],
+)
+def test_reliability_needs_per_modality_refiners_and_their_fm_loss(overrides, message):
+    with pytest.raises(ConfigError, match=f"model.flow.reliability: .*{message}"):
+        load_config(TINY, overrides)
+
+
+def test_reliability_state_is_checkpointed_and_evaluated(tmp_path):
+    train(load_config(TINY, ["run.total_frames=256", "model.flow.reliability=weight"]), tmp_path / "run")
+    ckpt = load_checkpoint(resolve_checkpoint(tmp_path / "run"))
+    stats = {k: v for k, v in ckpt["model"].items() if k.endswith("score_stats")}
+    assert len(stats) == 3 and all(v[0] > 0 for v in stats.values())  # count: the FM loss fed the statistics
+    result = evaluate_any(tmp_path / "run", episodes=2, num_envs=2)
+    weights = [result[f"weight_{m}"] for m in ("state", "language", "reward")]
+    assert all(0.0 < w <= 1.0 for w in weights)  # a mean of exp(-relu(.)) over the evaluated steps
 
 
 def test_ogm_needs_a_refiner_per_modality():

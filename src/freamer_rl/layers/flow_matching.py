@@ -51,6 +51,25 @@ collection and update, so the step count chosen at collection is the one recompu
 log-probabilities match. All K integrations are computed for every row and mixed by ``y`` (no host syncs and no
 Python branches on values: ``torch.vmap``/``torch.compile`` keep working), so the cost is that of
 ``sum(choices) + 3`` velocity evaluations.
+
+Score-based reliability (optional: ``reliability``; issue "filter before mixing", not in the paper)
+--------------------------------------------------------------------------------------------------
+Trained as above, the velocity field is ``E[x_1 - x_0 | x_t]``: small where ``x`` lies on the manifold of the
+embeddings it was trained on, large off it. Its score ``c(e)`` at the encoder output therefore says how unusual an
+embedding is, per row and at test time. With ``reliability`` on, the refiner keeps running statistics (EMA mean and
+variance, buffer ``score_stats = [count, mean, var]``) of ``log c(e)`` over the clean targets of every
+:meth:`FlowMatchingRefiner.cfm_loss` call (the training embeddings) and standardises the score,
+``z = (log c(e) - mean) / std`` (0 before any statistics exist), then
+
+    gate:    e_hat = e + sigmoid(alpha + softplus(beta) z) (x_N - e)     the filter opens on unusual inputs
+    weight:  e_hat <- w e_hat,  w = exp(-relu(z - margin))               an unusual modality weighs less in the mix
+
+(``both``: the two together). ``beta`` is learned (``softplus(beta) = 1`` at initialisation); the weight has no
+parameters, so it reacts at test time to a corruption training never showed.
+
+Noise scale (``cfm_loss(..., relative=True)``): ``x_0 = x_1 + noise_std * std_row(x_1) * eps``, the perturbation
+measured in each row's own std across its ``d`` entries (the scale of the paper's Table 13 protocol), so a modality
+with small embeddings is not trained on noise ten times its own size.
 """
 
 from __future__ import annotations
@@ -65,7 +84,12 @@ from torch import nn
 from freamer_rl.layers.checks import check_finite, is_transformed
 from freamer_rl.layers.dedup import dedup_rows
 
-__all__ = ["FlowMatchingRefiner", "cfm_interpolant"]
+__all__ = ["FlowMatchingRefiner", "RELIABILITY_MODES", "cfm_interpolant"]
+
+#: ``reliability`` choices of :class:`FlowMatchingRefiner` (see the module docstring)
+RELIABILITY_MODES = ("off", "gate", "weight", "both")
+#: EMA rate of the score statistics (the first update sets them)
+SCORE_STATS_RATE = 0.05
 
 #: Times at which the complexity E_t ||v_theta(x, t)||^2 / d is evaluated (Appendix G.4).
 COMPLEXITY_TIMES = (0.25, 0.5, 0.75)
@@ -123,6 +147,9 @@ class FlowMatchingRefiner(nn.Module):
         adaptive_steps: step-count choices ``n_k`` for the score-based adaptive complexity (Appendix G.4, e.g.
             ``(1, 2, 3, 5, 7, 10)``); ``None`` or empty: off (always ``steps``; no selector, same state_dict).
         tau: Gumbel-Softmax temperature of the straight-through gradient (the forward choice is hard).
+        reliability: ``off`` | ``gate`` | ``weight`` | ``both``: the score-based input gate and/or mixing weight
+            (module docstring). Off: no extra parameter or buffer (same state_dict as before).
+        reliability_margin: ``margin`` of the weight, in standard deviations of the training scores.
 
     The velocity field is ``v_theta(x, t) = MLP([x; t])`` (time concatenated as an extra input, SiLU activations).
     The gate logit is the scalar parameter ``alpha`` (named so optimisers/OGM-GE can single it out).
@@ -148,6 +175,8 @@ class FlowMatchingRefiner(nn.Module):
         deduplicate: bool = True,
         adaptive_steps: Sequence[int] | None = None,
         tau: float = 1.0,
+        reliability: str = "off",
+        reliability_margin: float = 2.0,
     ) -> None:
         super().__init__()
         if dim <= 0 or hidden <= 0:
@@ -178,6 +207,14 @@ class FlowMatchingRefiner(nn.Module):
         self.selector: nn.Linear | None = None
         if adaptive_steps:
             self._init_adaptive(tuple(int(n) for n in adaptive_steps))
+        if reliability not in RELIABILITY_MODES:
+            raise ValueError(f"reliability must be one of {RELIABILITY_MODES}; got {reliability!r}")
+        self.reliability = reliability
+        self.reliability_margin = float(reliability_margin)
+        if reliability != "off":
+            self.register_buffer("score_stats", torch.tensor([0.0, 0.0, 1.0]))  # count, mean, var of log c(e)
+        if reliability in ("gate", "both"):
+            self.beta = nn.Parameter(torch.tensor(math.log(math.e - 1.0)))  # softplus(beta) = 1
 
     def _init_adaptive(self, choices: tuple[int, ...]) -> None:
         """Build the step selector and the logging buffers (Appendix G.4); see the class docstring."""
@@ -266,6 +303,45 @@ class FlowMatchingRefiner(nn.Module):
         hard = (torch.arange(logits.shape[-1], device=logits.device) == index).to(soft.dtype)
         return hard + (soft - soft.detach()), torch.softmax(logits.detach() / self.tau, dim=-1)
 
+    def score_z(self, e: torch.Tensor) -> torch.Tensor:
+        """Standardised score ``z = (log c(e) - mean) / std`` against the training statistics: ``e [*B, d] -> [*B]``
+        (0 while no statistics exist). Needs ``reliability`` on."""
+        log_c = torch.log(self.complexity(e) + 1e-8)
+        count, mean, var = self.score_stats.unbind()
+        z = (log_c - mean) / var.clamp_min(1e-6).sqrt()
+        return torch.where(count > 0, z, torch.zeros_like(z))
+
+    def _observe_scores(self, e: torch.Tensor) -> None:
+        """EMA update of ``score_stats`` from the training embeddings ``e [*B, d]`` (in place, no host sync; skipped
+        under ``torch.vmap``/``torch.func`` as :meth:`_record_steps` is)."""
+        rows = e.detach().reshape(-1, self.dim)
+        if rows.shape[0] == 0:
+            return
+        log_c = torch.log(self.complexity(rows) + 1e-8)
+        if is_transformed(log_c) and not torch.compiler.is_compiling():
+            return
+        with torch.no_grad():
+            count, mean, var = self.score_stats.unbind()
+            rate = torch.where(count > 0, torch.full_like(count, SCORE_STATS_RATE), torch.ones_like(count))
+            b_mean, b_var = log_c.mean(), log_c.var(unbiased=False)
+            delta = b_mean - mean
+            new_var = (1 - rate) * (var + rate * delta**2) + rate * b_var
+            self.score_stats.copy_(torch.stack([count + 1, mean + rate * delta, new_var]))
+
+    def reliability_terms(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(gate [*B, 1], weight [*B, 1])`` for ``e [*B, d]``: the residual gate of Eq. 3 (input-dependent with
+        ``reliability`` gate/both) and the mixing weight (1 unless weight/both)."""
+        gate_logit = self.alpha.to(e.dtype).expand(e.shape[:-1]).unsqueeze(-1)
+        weight = torch.ones_like(gate_logit)
+        if self.reliability == "off":
+            return torch.sigmoid(gate_logit), weight
+        z = self.score_z(e).unsqueeze(-1).to(e.dtype)
+        if self.reliability in ("gate", "both"):
+            gate_logit = gate_logit + F.softplus(self.beta).to(e.dtype) * z
+        if self.reliability in ("weight", "both"):
+            weight = torch.exp(-torch.relu(z - self.reliability_margin))
+        return torch.sigmoid(gate_logit), weight
+
     def _adaptive_integrate(self, e: torch.Tensor) -> torch.Tensor:
         """``[*B, d] -> [*B, d + 2]``: ``cat[x_N, n_chosen, n_expected]`` with ``x_N = sum_k y_k Euler(e, n_k)``.
 
@@ -315,14 +391,19 @@ class FlowMatchingRefiner(nn.Module):
         if adaptive:
             self._record_steps(out[..., self.dim :])
             out = out[..., : self.dim]
-        return e + self.gate.to(e.dtype) * (out - e)
+        if self.reliability == "off":
+            return e + self.gate.to(e.dtype) * (out - e)
+        gate, weight = self.reliability_terms(e)
+        return weight * (e + gate * (out - e))
 
-    def cfm_loss(self, e: torch.Tensor, noise_std: float = 1.0) -> torch.Tensor:
+    def cfm_loss(self, e: torch.Tensor, noise_std: float = 1.0, *, relative: bool = False) -> torch.Tensor:
         """Denoising conditional flow matching loss (Eq. A13); see the module docstring for the exact formulation.
+        With ``reliability`` on, the clean targets also update the score statistics.
 
         Args:
             e: encoder embeddings ``[*B, d]`` (detached inside: only the velocity field receives gradients).
             noise_std: std ``sigma`` of the Gaussian perturbation that defines the noisy start ``x_0``.
+            relative: ``sigma`` in units of each row's own std across ``d`` (module docstring, "Noise scale").
 
         Returns:
             0-d tensor: ``mean over *B and d of (v_theta(x_t, t) - (x_1 - x_0))^2``.
@@ -332,11 +413,15 @@ class FlowMatchingRefiner(nn.Module):
         if not math.isfinite(noise_std) or noise_std < 0:
             raise ValueError(f"noise_std must be a finite non-negative float; got {noise_std}")
         x1 = e.detach()
-        x0 = x1 + noise_std * torch.randn_like(x1)
+        if self.reliability != "off":
+            self._observe_scores(x1)
+        scale = noise_std * x1.std(dim=-1, keepdim=True) if relative else noise_std
+        x0 = x1 + scale * torch.randn_like(x1)
         t = torch.rand(x1.shape[:-1], dtype=x1.dtype, device=x1.device)
         x_t, u = cfm_interpolant(x0, x1, t)
         return (self.velocity(x_t, t) - u).pow(2).mean()
 
     def extra_repr(self) -> str:
         adaptive = f", adaptive_steps={self.adaptive_steps}, tau={self.tau}" if self.adaptive_steps else ""
-        return f"dim={self.dim}, steps={self.steps}{adaptive}"
+        reliability = f", reliability={self.reliability}" if self.reliability != "off" else ""
+        return f"dim={self.dim}, steps={self.steps}{adaptive}{reliability}"

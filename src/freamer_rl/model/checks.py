@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from freamer_rl.errors import ConfigError
+from freamer_rl.layers.flow_matching import RELIABILITY_MODES
 from freamer_rl.model.factory import FUSIONS, PLACEMENTS
 from freamer_rl.model.modalities import MODALITIES
 
@@ -76,6 +77,7 @@ def check_model_names(model: Any) -> None:
         raise ConfigError(
             f"model.flow.placement: expected one of {', '.join(PLACEMENTS)}, got {model.flow.placement!r}"
         )
+    _check_flow_choices(model.flow)
     if model.fusion not in FUSIONS:
         raise ConfigError(f"model.fusion: expected one of {', '.join(FUSIONS)}, got {model.fusion!r}")
     if model.fusion_hidden is not None and model.fusion != "concat":
@@ -93,4 +95,26 @@ def check_model_names(model: Any) -> None:
         raise ConfigError(
             f"model.flow.adaptive_steps: got {steps}: give two or more choices, or set "
             "model.flow.steps and leave adaptive_steps empty"
+        )
+
+
+#: ``model.flow.noise_scale`` choices
+NOISE_SCALES = ("absolute", "relative")
+
+
+def _check_flow_choices(flow: Any) -> None:
+    """``model.flow.noise_scale`` and ``model.flow.reliability``: known choices; reliability needs refiners per
+    modality (placement pre)."""
+    if flow.noise_scale not in NOISE_SCALES:
+        raise ConfigError(
+            f"model.flow.noise_scale: expected one of {', '.join(NOISE_SCALES)}, got {flow.noise_scale!r}"
+        )
+    if flow.reliability not in RELIABILITY_MODES:
+        raise ConfigError(
+            f"model.flow.reliability: expected one of {', '.join(RELIABILITY_MODES)}, got {flow.reliability!r}"
+        )
+    if flow.reliability != "off" and flow.placement != "pre":
+        raise ConfigError(
+            f"model.flow.reliability: {flow.reliability} weighs each modality by its own refiner's score, so it "
+            f"needs model.flow.placement=pre (got {flow.placement!r})"
         )

@@ -63,6 +63,13 @@ class FlowConfig:
     # (paper: [1, 2, 3, 5, 7, 10]) by a straight-through Gumbel-Softmax on E_t ||v(x, t)||^2. Empty: fixed ``steps``.
     adaptive_steps: list[int] = field(default_factory=list)
     adaptive_tau: float = 1.0
+    # FM training noise: absolute (noise_std itself) or relative (noise_std times each embedding row's own std, the
+    # scale of the Table 13 protocol; a modality with small embeddings is not trained on noise ten times its size)
+    noise_scale: str = "absolute"
+    # Score-based reliability (placement pre; layers/flow_matching.py): off | gate (the residual gate opens with the
+    # refiner's score) | weight (an embedding whose score is unusual for training data weighs less in the mix) | both
+    reliability: str = "off"
+    reliability_margin: float = 2.0  # the weight starts falling this many std of the training scores above their mean
 
 
 @dataclass
@@ -154,6 +161,7 @@ MODEL_RANGES: dict[str, Range] = {
     },
     "model.flow.noise_std": (NON_NEGATIVE, ">= 0"),
     "model.flow.adaptive_tau": (POSITIVE, "> 0"),
+    "model.flow.reliability_margin": (NON_NEGATIVE, ">= 0"),
     "aux.lambda_fm": (NON_NEGATIVE, ">= 0"),
     "aux.lambda_cl": (NON_NEGATIVE, ">= 0"),
     "aux.lambda_smooth": (NON_NEGATIVE, ">= 0"),

@@ -113,6 +113,18 @@ class FreamerModules:
         ``("embed", "fused") -> "fused"`` after it."""
         return {m: (("embed", m), "fused" if m == "fused" else ("refined", m)) for m in self.refiners}
 
+    def telemetry(self, td) -> dict[str, torch.Tensor]:
+        """Per refined modality ``m``, means over the rows of a trunk pass written to ``td``:
+        ``fm_displacement_<m>`` (:meth:`displacement`) and, for refiners with score-based reliability,
+        ``gate_input_<m>`` (the input-dependent gate) and ``weight_<m>`` (the mixing weight)."""
+        out = {f"fm_displacement_{m}": v for m, v in self.displacement(td).items()}
+        for m, refiner in self.refiners.items():
+            if getattr(refiner, "reliability", "off") != "off":
+                with torch.no_grad():
+                    gate, weight = refiner.reliability_terms(td.get(self.refiner_keys()[m][0]))
+                out[f"gate_input_{m}"], out[f"weight_{m}"] = gate.mean(), weight.mean()
+        return out
+
     def displacement(self, td) -> dict[str, torch.Tensor]:
         """How far each refiner moved its input in a trunk pass written to ``td``: the mean over rows of
         ``||e_hat - e|| / ||e||`` (0: the filter is off; 1: it moved the embedding by its own length)."""
@@ -145,6 +157,8 @@ def build_freamer(
         flow_steps=cfg.flow.steps,
         flow_adaptive_steps=tuple(getattr(cfg.flow, "adaptive_steps", None) or ()) or None,
         flow_tau=float(getattr(cfg.flow, "adaptive_tau", 1.0)),
+        reliability=getattr(cfg.flow, "reliability", "off"),
+        reliability_margin=float(getattr(cfg.flow, "reliability_margin", 2.0)),
         gate_init={
             **{m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
             "fused": cfg.flow.gate_init.get("fused", FUSED_GATE_INIT),
@@ -187,6 +201,8 @@ def build_filter_mix_memory(
     gate_init: Mapping[str, float],
     flow_adaptive_steps: Sequence[int] | None = None,
     flow_tau: float = 1.0,
+    reliability: str = "off",
+    reliability_margin: float = 2.0,
     placement: str = "pre",
     fusion: str = "fno",
     fusion_hidden: int | None = None,
@@ -229,6 +245,8 @@ def build_filter_mix_memory(
         dim: embedding width ``d``. flow_hidden, flow_steps: velocity MLP width and Euler steps of each refiner.
         flow_adaptive_steps, flow_tau: step-count choices and Gumbel-Softmax temperature of the score-based
             adaptive complexity (Appendix G.4; ``None``/empty: off, every refiner takes ``flow_steps`` steps).
+        reliability, reliability_margin: the refiners' score-based input gate and/or mixing weight
+            (:class:`~freamer_rl.layers.flow_matching.FlowMatchingRefiner`; ``placement="pre"`` only).
         gate_init: initial gate logit ``alpha_m`` per refined modality (``"fused"`` for ``placement="post"``).
         placement, fusion, fusion_hidden: where the refiners sit (``pre``, ``post``, ``off``), the fuser (``fno``,
             ``concat``, ``mean``) and the concat MLP's width (default ``d``).
@@ -246,6 +264,8 @@ def build_filter_mix_memory(
         raise ValueError(
             f"placement must be one of {PLACEMENTS} and fusion one of {FUSIONS}; got {placement!r}, {fusion!r}"
         )
+    if reliability != "off" and placement != "pre":
+        raise ValueError(f"reliability={reliability!r} needs placement='pre' (one refiner per modality)")
     refined = list(modalities) if placement == "pre" else ["fused"] if placement == "post" else []
     missing = [m for m in refined if m not in gate_init]
     if missing:
@@ -261,6 +281,8 @@ def build_filter_mix_memory(
             gate_init=gate_init[m],
             adaptive_steps=flow_adaptive_steps,
             tau=flow_tau,
+            reliability=reliability,
+            reliability_margin=reliability_margin,
         )
     stack_in = [("refined", m) for m in modalities] if placement == "pre" else [("embed", m) for m in modalities]
     for m in modalities if placement == "pre" else []:

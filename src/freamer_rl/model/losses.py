@@ -63,6 +63,7 @@ class FreamerAuxLoss(LossModule):
         refiners: ``{modality: FlowMatchingRefiner}`` (``FreamerModules.refiners``).
         lambda_fm, lambda_cl, lambda_smooth: weights of Eq. 6. A zero weight skips the term.
         noise_std: perturbation scale of the denoising CFM pairs.
+        relative_noise: ``noise_std`` in units of each embedding row's own std (``model.flow.noise_scale``).
         temperature: InfoNCE temperature of the contrastive term (used only with vision and language).
         smooth_fuser: the :class:`~freamer_rl.layers.fno.FNOFuser`. Given, ``L_smooth`` is computed on
             ``smooth_fuser(E.detach())`` and trains only the fuser; ``None``: on the trunk's ``fused_modalities``
@@ -92,6 +93,7 @@ class FreamerAuxLoss(LossModule):
         lambda_cl: float = 0.1,
         lambda_smooth: float = 1e-3,
         noise_std: float = 1.0,
+        relative_noise: bool = False,
         temperature: float = 0.1,
         smooth_fuser: nn.Module | None = None,
         trunk: nn.Module | None = None,
@@ -103,6 +105,7 @@ class FreamerAuxLoss(LossModule):
         self.lambda_cl = lambda_cl
         self.lambda_smooth = lambda_smooth
         self.noise_std = noise_std
+        self.relative_noise = relative_noise
         self.temperature = temperature
         self.smooth_fuser = smooth_fuser
         self.trunk = trunk
@@ -139,7 +142,10 @@ class FreamerAuxLoss(LossModule):
             td = self.trunk(td.copy())  # recurrent mode is on inside every LossModule.forward
         out: dict[str, torch.Tensor] = {}
         if self.lambda_fm and len(self.refiners):
-            per_mod = {m: r.cfm_loss(self._embed(td, m), noise_std=self.noise_std) for m, r in self.refiners.items()}
+            per_mod = {
+                m: r.cfm_loss(self._embed(td, m), noise_std=self.noise_std, relative=self.relative_noise)
+                for m, r in self.refiners.items()
+            }
             for m, v in per_mod.items():
                 out[f"fm_{m}"] = v.detach()
             out["loss_fm"] = self.lambda_fm * torch.stack(list(per_mod.values())).mean()

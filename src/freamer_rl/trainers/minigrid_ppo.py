@@ -123,6 +123,11 @@ def validate(cfg: FreamerConfig) -> None:
             )
     check_model_names(cfg.model)
     check_model_shapes(cfg)
+    if cfg.model.flow.reliability != "off" and not cfg.aux.lambda_fm:
+        raise ConfigError(
+            f"model.flow.reliability: {cfg.model.flow.reliability} standardises the refiners' scores by statistics "
+            "the flow-matching loss gathers, but aux.lambda_fm is 0; give aux.lambda_fm > 0"
+        )
     check_machinery(cfg)
     check_ppo_layout(cfg)
 
@@ -178,6 +183,7 @@ class Trainer(RunLoop):
             # Eq. A16 smooths the FNO's mixed rows: the concat / mean fusers mix no rows, so it is off with them
             lambda_smooth=cfg.aux.lambda_smooth if cfg.model.fusion == "fno" else 0.0,
             noise_std=cfg.model.flow.noise_std,
+            relative_noise=cfg.model.flow.noise_scale == "relative",
             smooth_fuser=None if cfg.aux.smooth_into_encoders else self.modules.fuser,
             modalities=self.modules.modalities,
         ).to(self.device)
@@ -360,7 +366,7 @@ class Trainer(RunLoop):
                     self.ogm.observe({m: aux_td[f"fm_{m}"] for m in self.modules.refiners})
                 means.add(
                     {
-                        **{f"fm_displacement_{m}": v for m, v in self.modules.displacement(mb).items()},
+                        **self.modules.telemetry(mb),
                         "loss_total": total,
                         "grad_norm": grad_norm,
                         **{k: v for k, v in loss_td.items() if v.numel() == 1},
@@ -444,7 +450,7 @@ def evaluate(
         seed=seed,
         max_steps=max_steps,
         corrupt=corrupt,
-        step_metrics=lambda td: {f"fm_displacement_{m}": v for m, v in modules.displacement(td).items()},
+        step_metrics=modules.telemetry,
     )
     result.update({f"gate_{m}": g for m, g in modules.gates().items()})
     result["embedding_noise"] = embed
