@@ -31,7 +31,7 @@ from freamer_rl import __version__
 from freamer_rl.config.sections import CorruptionConfig, check_corruption
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.chain import run_chain
-from freamer_rl.experiments.suite import describe, plan_suite, run_suite
+from freamer_rl.experiments.suite import dry_run_listing, run_suite
 from freamer_rl.health.cli import main as health_main
 from freamer_rl.run.params import OFFLINE_NOTE, format_parameter_table
 from freamer_rl.run.rundir import Terminated
@@ -154,16 +154,7 @@ def _run(args: argparse.Namespace) -> int:
 def _suite(args: argparse.Namespace) -> int:
     """``freamer-rl suite``: the dry-run listing, or train + report; 1 when runs failed (the others still ran)."""
     if args.dry_run:
-        suite, root, runs = plan_suite(args.suite, args.output)
-        lines = [f"suite {suite.name}: {len(runs)} runs -> {root}"]
-        for r in describe(runs):
-            state = {
-                "new": "new",
-                "done": f"done ({r['frames']:,} frames)",
-                "partial": f"partial ({r['frames']:,} frames)",
-            }.get(r["status"], f"failed: {r['error']}")
-            lines.append(f"  {r['label']:<20} {r['env']:<32} seed {r['seed']:<3} {state}")
-        sys.stdout.write("\n".join(lines) + "\n")
+        sys.stdout.write(dry_run_listing(args.suite, args.output))
         return 0
     result = run_suite(args.suite, jobs=args.jobs, output=args.output, report_only=args.report_only)
     sys.stdout.write(f"{Path(result['output']) / 'summary.md'}\n")
@@ -173,6 +164,11 @@ def _suite(args: argparse.Namespace) -> int:
             f"{', '.join(result['failed'])}\n"
         )
         return 0 if args.report_only else 1
+    if result["eval_failed"]:
+        sys.stderr.write(
+            f"{len(result['eval_failed'])} evaluations failed (see robustness.md): {', '.join(result['eval_failed'])}\n"
+        )
+        return 1
     return 0
 
 

@@ -21,11 +21,11 @@ ROOT = Path(__file__).resolve().parents[2]
 ENV = "MiniGrid-Empty-5x5-v0"
 
 
-def _suite(folder: Path, total_frames: int) -> Path:
+def _suite(folder: Path, total_frames: int, seeds: str = "[0]") -> Path:
     shutil.copy(ROOT / "recipes" / "tiny.yaml", folder / "tiny.yaml")
     path = folder / "suite.yaml"
     path.write_text(
-        f"name: safety\nseeds: [0]\ntotal_frames: {total_frames}\noverrides: [ppo.epochs=1]\n"
+        f"name: safety\nseeds: {seeds}\ntotal_frames: {total_frames}\noverrides: [ppo.epochs=1]\n"
         "entries:\n  - {label: a, recipe: tiny.yaml}\n"
     )
     return path
@@ -115,6 +115,31 @@ def test_kill_9_of_the_suite_ends_its_workers_and_frees_the_run_locks(tmp_path):
         for pid in [suite.pid, *workers]:
             if _alive(pid):
                 os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_sigterm_of_the_suite_stops_it_without_starting_the_queued_runs(tmp_path):
+    out = tmp_path / "out"
+    command = [sys.executable, "-m", "freamer_rl.cli", "--log-level", "WARNING", "suite"]
+    suite = subprocess.Popen(
+        [*command, str(_suite(tmp_path, 10_000_000, "[0, 1, 2]")), "--output", str(out)],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    try:
+        deadline = time.monotonic() + 180
+        progress = out / "runs" / "a" / ENV / "seed0" / "progress.csv"
+        while not (progress.is_file() and len(progress.read_text().splitlines()) > 1):  # training, handler set
+            assert suite.poll() is None and time.monotonic() < deadline, "the suite never started its run"
+            time.sleep(0.5)
+        suite.terminate()
+        suite.wait(timeout=120)  # the run checkpoints, and the job queued behind it returns at once
+        assert suite.returncode != 0
+        assert not (out / "runs" / "a" / ENV / "seed1").exists()  # ProcessPoolExecutor had queued it: never started
+        assert list((out / "runs" / "a" / ENV / "seed0" / "checkpoints").glob("*.pt"))  # SIGTERM checkpointed
+    finally:
+        if suite.poll() is None:
+            suite.kill()
 
 
 def test_overall_progress_logs_share_and_eta_per_finished_item(caplog):

@@ -11,9 +11,9 @@ from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.model.losses import FreamerAuxLoss
+from freamer_rl.run.checkpoint import load_checkpoint
 from freamer_rl.run.envs import make_batched_env
 from freamer_rl.trainers.minigrid_ppo import build_modules, params, train
-from freamer_rl.run.checkpoint import load_checkpoint
 from freamer_rl.trainers.registry import evaluate_any, load_config, resolve_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from freamer_rl.experiments.stats import iqm_ci
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import write_rows_csv
 
@@ -308,8 +309,20 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             row[f"{key}_mean"] = statistics.mean(reached) if reached else None
             row[f"{key}_reached"] = len(reached)
             row[f"{key}_per_seed"] = _per_seed(done, key)
+        _add_iqm(row, env, "success_rate", [r.get("success_rate") for r in done])
+        # episodes to 95%: only when every seed reached it (an IQM of the reached ones would flatter the arm)
+        reached = row["episodes_to_95_reached"]
+        _add_iqm(row, env, "episodes_to_95", [r.get("episodes_to_95") for r in done] if reached == len(done) else [])
         out.append(row)
     return out
+
+
+def _add_iqm(row: dict, env: str, key: str, values: list) -> None:
+    """``<key>_iqm`` / ``_iqm_low`` / ``_iqm_high``: IQM over the seeds with its 95% stratified-bootstrap interval
+    (:func:`freamer_rl.experiments.stats.iqm_ci`); None without values."""
+    vals = [float(v) for v in values if not _missing(v)]
+    point, low, high = iqm_ci({env: vals}) if vals else (None, None, None)
+    row[f"{key}_iqm"], row[f"{key}_iqm_low"], row[f"{key}_iqm_high"] = point, low, high
 
 
 def _cell(row: dict, key: str, digits: int) -> str:
@@ -319,6 +332,17 @@ def _cell(row: dict, key: str, digits: int) -> str:
     if lo == hi:
         return f"{mean:,.{digits}f}"
     return f"{mean:,.{digits}f} ({lo:,.{digits}f}–{hi:,.{digits}f})"
+
+
+def _iqm_cell(row: dict, key: str, digits: int) -> str:
+    """``"IQM [low, high]"``; for episodes to 95% without every seed reaching it, how many did."""
+    if not row["seeds_done"]:
+        return ""
+    point = row[f"{key}_iqm"]
+    if point is None:
+        reached = row.get(f"{key}_reached")
+        return "" if reached is None else f"{reached}/{row['seeds_done']} seeds reached"
+    return f"{point:,.{digits}f} [{row[f'{key}_iqm_low']:,.{digits}f}, {row[f'{key}_iqm_high']:,.{digits}f}]"
 
 
 def _to95(row: dict, key: str) -> str:
@@ -377,9 +401,11 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     head += ["Crafter score [per seed]"] if has_crafter else []
     head += ["episodes to 95% [per seed]", "frames to 95% [per seed]"] if has_success else []
     head += ["frames/s"]
+    head += ["final success IQM [95% CI]", "episodes to 95% IQM [95% CI]"] if has_success else []
     note = (
         "Final values: mean (min–max) across the seeds done; to 95%: mean of the seeds that reached 95% success, "
-        "then each seed's value (— not reached)."
+        "then each seed's value (— not reached). IQM: interquartile mean over the seeds done with a 95% "
+        "stratified-bootstrap interval (episodes to 95% only when every seed reached it)."
     )
     lines = [
         f"# Suite {name}",
@@ -397,6 +423,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [f"{_cell(r, 'crafter_score', 2)} [{r['crafter_score_per_seed']}]"] if has_crafter else []
         cells += [_to95(r, "episodes_to_95"), _to95(r, "frames_to_95")] if has_success else []
         cells += [_cell(r, "fps", 0)]
+        cells += [_iqm_cell(r, "success_rate", 3), _iqm_cell(r, "episodes_to_95", 0)] if has_success else []
         lines.append("| " + " | ".join(cells) + " |")
     lines += health_markdown(rows)
     failed = [r for r in results if r["status"] == "failed"]

@@ -26,6 +26,12 @@ second suite on the same folder is refused, naming the holder's pid). Workers di
 -9`` included (they checkpoint on the SIGTERM they get), so a rerun finds no run still locked. One overall progress
 bar with an ETA (frames-weighted when every run's budget is known; a log line per finished run when not on a
 terminal) replaces the per-run lines.
+
+An optional ``evaluate:`` section (:class:`~freamer_rl.experiments.robustness.EvaluateConfig`: episodes, seed,
+metric, conditions of evaluation-time corruption, ``compare`` pairs of entry labels) has every finished run
+evaluated under every condition in the same workers after training (``<run_dir>/eval/<condition>.json``; one already
+written for the run's final checkpoint is skipped, a failed one is retried), and adds the robustness report
+(:func:`~freamer_rl.experiments.robustness.write_robustness`). ``--report-only`` rebuilds everything from the folders.
 """
 
 from __future__ import annotations
@@ -40,7 +46,10 @@ import signal
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -53,13 +62,33 @@ from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.folders import prepare_output_folder
 from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, failed_line, run_status, write_report
+from freamer_rl.experiments.robustness import (
+    EvaluateConfig,
+    check_evaluate,
+    checkpoint_frames,
+    eval_job,
+    eval_path,
+    eval_state,
+    evaluate_condition,
+    write_robustness,
+)
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SuiteConfig", "SuiteEntry", "SuiteRun", "env_folder", "load_suite", "plan_suite", "run_suite"]
+__all__ = [
+    "SuiteConfig",
+    "SuiteEntry",
+    "SuiteRun",
+    "describe_evaluations",
+    "dry_run_listing",
+    "env_folder",
+    "load_suite",
+    "plan_suite",
+    "run_suite",
+]
 
 
 @dataclass
@@ -79,6 +108,9 @@ class SuiteConfig:
     envs: list[str] = field(default_factory=list)
     overrides: list[str] = field(default_factory=list)
     total_frames: int | None = None
+    # robustness evaluation (freamer_rl.experiments.robustness); no conditions: none. Not Optional: the loader's
+    # union coercion would hide the nested field an error names
+    evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
 
 
 def env_folder(env_id: str) -> str:
@@ -124,6 +156,8 @@ def _validate_suite(cfg: SuiteConfig) -> None:
             if not entry.envs:
                 raise ConfigError(f"entries[{i}].envs: an empty list (leave it out to use the suite's envs)")
             _check_envs(entry.envs, f"entries[{i}].envs")
+    if cfg.evaluate != EvaluateConfig():
+        check_evaluate(cfg.evaluate, [e.label for e in cfg.entries])
 
 
 VALIDATORS[SuiteConfig] = _validate_suite
@@ -230,6 +264,10 @@ def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
 # -- workers ---------------------------------------------------------------------------------------------------------
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _ORPHAN_GRACE_S = 60.0  # an orphaned worker's time to checkpoint after SIGTERM before it exits regardless
+# In a worker: set once the suite stops (the suite's shared event) or the worker is orphaned (its own), so that the
+# jobs ProcessPoolExecutor had already queued to it return at once instead of training after the SIGTERM
+_SUITE_STOP: Any = None
+_ORPHANED = threading.Event()
 
 
 def _watch_parent(parent: int) -> None:
@@ -237,16 +275,19 @@ def _watch_parent(parent: int) -> None:
     trainer checkpoints and stops, releasing its run lock), then exit after a grace period in any case."""
     while os.getppid() == parent:
         time.sleep(1.0)
+    _ORPHANED.set()
     os.kill(os.getpid(), signal.SIGTERM)
     time.sleep(_ORPHAN_GRACE_S)
     os._exit(143)
 
 
-def _init_worker(parent: int) -> None:
+def _init_worker(parent: int, stop: Any = None) -> None:
     """Worker start: one torch thread; die with the suite process, even when it is killed with ``kill -9`` (a worker
     left training would hold its run lock, so a rerun would be refused): the kernel sends SIGTERM when the parent dies
     (Linux ``prctl(PR_SET_PDEATHSIG)``), and a parent-pid watchdog thread covers other systems and a parent that died
-    before the ``prctl``."""
+    before the ``prctl``. ``stop``: the suite's stop event (see :func:`_unless_stopped`)."""
+    global _SUITE_STOP
+    _SUITE_STOP = stop
     torch.set_num_threads(1)
     if sys.platform.startswith("linux"):
         try:
@@ -254,6 +295,14 @@ def _init_worker(parent: int) -> None:
         except (OSError, AttributeError) as err:  # no prctl: the watchdog alone
             logger.debug("prctl(PR_SET_PDEATHSIG) unavailable: %s", err)
     threading.Thread(target=_watch_parent, args=(parent,), name="suite-parent-watchdog", daemon=True).start()
+
+
+def _unless_stopped(worker: Any, payload: dict[str, Any]) -> dict[str, Any]:
+    """Worker: ``worker(payload)``, unless the suite has stopped (SIGTERM) or this worker is orphaned; then nothing
+    runs (the suite no longer reads the result, and nothing is recorded for a job that never started)."""
+    if _ORPHANED.is_set() or (_SUITE_STOP is not None and _SUITE_STOP.is_set()):
+        return {"ok": False, "error": "the suite stopped before this job started", "seconds": 0.0}
+    return worker(payload)
 
 
 def _error_line(err: BaseException) -> str:
@@ -312,52 +361,80 @@ def _finished_note(run: SuiteRun, out: dict[str, Any]) -> str:
     )
 
 
-def _execute(suite: str, todo: list[SuiteRun], jobs: int, remaining: list[int | None]) -> list[SuiteRun]:
-    """Train ``todo`` ``jobs`` at a time in spawned workers (``remaining[i]``: the frames run ``i`` has left to train,
-    None when unknown, for the overall progress); returns the runs that finished without error."""
-    level = logging.getLogger("freamer_rl").getEffectiveLevel()
-    finished: list[SuiteRun] = []
+@contextmanager
+def _worker_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
+    """The suite's spawned workers, ``jobs`` at most (started on demand, one torch thread each), shared by training
+    and evaluation; every exit stops them, and a SIGTERM is passed on to them (Ctrl-C reaches them itself)."""
     token = catch_sigterm()
+    context = mp.get_context("spawn")
+    stop = context.Event()
     pool = ProcessPoolExecutor(
-        max_workers=max(1, min(jobs, len(todo))),
-        mp_context=mp.get_context("spawn"),
-        initializer=_init_worker,
-        initargs=(os.getpid(),),
+        max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), stop)
     )
-    progress = OverallProgress(f"suite {suite}", remaining, item="runs")
     try:
-        futures = {
-            pool.submit(
-                _train_run,
-                {
-                    "recipe": str(r.recipe),
-                    "overrides": r.overrides,
-                    "tag": _tag(r),
-                    "run_dir": str(r.run_dir),
-                    "target_frames": r.target_frames,
-                    "log_level": level,
-                },
-            ): i
-            for i, r in enumerate(todo)
-        }
-        for future in as_completed(futures):
-            index = futures[future]
-            run = todo[index]
-            out = _outcome(future, run)
-            if not out["ok"]:
-                progress.warn(f"suite {suite}: {_finished_note(run, out)}")
-            progress.advance(index, _finished_note(run, out))
-            if out["ok"]:
-                finished.append(run)
+        yield pool
     except KeyboardInterrupt as err:
-        if isinstance(err, Terminated):  # Ctrl-C reaches the workers itself; SIGTERM is passed on to them
+        stop.set()  # the jobs already queued to a worker return at once (cancel_futures cannot reach those)
+        if isinstance(err, Terminated):
             for process in list(getattr(pool, "_processes", {}).values()):
                 process.terminate()
         raise
     finally:  # every exit, an unexpected error included, stops the workers
-        progress.close()
         restore_sigterm(token)
         pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _in_workers(
+    pool: ProcessPoolExecutor,
+    desc: str,
+    worker: Any,
+    payloads: list[dict],
+    weights: list[int | None],
+    item: str,
+    on_result: Any,
+) -> None:
+    """Run ``worker(payload)`` for every payload in ``pool`` with one overall progress (``weights``: as
+    :class:`OverallProgress`); ``on_result(index, future) -> (ok, note)`` reads each outcome as it finishes."""
+    progress = OverallProgress(desc, weights, item=item)
+    try:
+        futures = {pool.submit(_unless_stopped, worker, payload): i for i, payload in enumerate(payloads)}
+        for future in as_completed(futures):
+            index = futures[future]
+            ok, note = on_result(index, future)
+            if not ok:
+                progress.warn(f"{desc}: {note}")
+            progress.advance(index, note)
+    finally:
+        progress.close()
+
+
+def _execute(
+    pool: ProcessPoolExecutor, suite: str, todo: list[SuiteRun], remaining: list[int | None]
+) -> list[SuiteRun]:
+    """Train ``todo`` in the suite's workers (``remaining[i]``: the frames run ``i`` has left to train,
+    None when unknown, for the overall progress); returns the runs that finished without error."""
+    level = logging.getLogger("freamer_rl").getEffectiveLevel()
+    finished: list[SuiteRun] = []
+
+    def on_result(index: int, future: Any) -> tuple[bool, str]:
+        run = todo[index]
+        out = _outcome(future, run)
+        if out["ok"]:
+            finished.append(run)
+        return out["ok"], _finished_note(run, out)
+
+    payloads = [
+        {
+            "recipe": str(r.recipe),
+            "overrides": r.overrides,
+            "tag": _tag(r),
+            "run_dir": str(r.run_dir),
+            "target_frames": r.target_frames,
+            "log_level": level,
+        }
+        for r in todo
+    ]
+    _in_workers(pool, f"suite {suite}", _train_run, payloads, remaining, "runs", on_result)
     return finished
 
 
@@ -376,7 +453,9 @@ def _lock_results(root: Path, field: str) -> RunDirLock:
         ) from None
 
 
-def _train_missing(suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: int) -> list[SuiteRun]:
+def _train_missing(
+    pool: ProcessPoolExecutor, suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: int
+) -> list[SuiteRun]:
     """Train every run not done yet; returns those trained to the end."""
     states = describe(runs)
     pending = [(r, s) for r, s in zip(runs, states) if s["status"] != "done" and not r.error]
@@ -398,7 +477,98 @@ def _train_missing(suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: i
     remaining = [
         None if r.target_frames is None else max(r.target_frames - int(s["frames"] or 0), 1) for r, s in pending
     ]
-    return _execute(suite.name, [r for r, _ in pending], jobs, remaining)
+    return _execute(pool, suite.name, [r for r, _ in pending], remaining)
+
+
+def describe_evaluations(suite: SuiteConfig, runs: list[SuiteRun]) -> list[dict[str, Any]]:
+    """Per run x ``evaluate`` condition: label, env, seed, condition, status (``done`` for the run's final
+    checkpoint, ``stale``, ``failed``, ``new``, or ``waiting`` while the run is not done), error, path."""
+    if not suite.evaluate.conditions:
+        return []
+    rows = []
+    for run, state in zip(runs, describe(runs)):
+        frames = checkpoint_frames(run.run_dir) if state["status"] == "done" else None
+        for c in suite.evaluate.conditions:
+            path = eval_path(run.run_dir, c.label)
+            status = eval_state(path, frames) if state["status"] == "done" else "waiting"
+            error = None
+            if status == "failed":
+                error = (json.loads(path.read_text()) or {}).get("error")
+            rows.append(
+                {
+                    "label": run.label,
+                    "env": run.env,
+                    "seed": run.seed,
+                    "condition": c.label,
+                    "status": status,
+                    "error": error,
+                    "path": str(path),
+                    "run": run,
+                    "config": c,
+                }
+            )
+    return rows
+
+
+def dry_run_listing(path: str | Path, output: str | Path | None = None) -> str:
+    """What ``freamer-rl suite --dry-run`` prints: every run with its status, then every evaluation with its."""
+    suite, root, runs = plan_suite(path, output)
+    lines = [f"suite {suite.name}: {len(runs)} runs -> {root}"]
+    for r in describe(runs):
+        state = {
+            "new": "new",
+            "done": f"done ({r['frames']:,} frames)",
+            "partial": f"partial ({r['frames']:,} frames)",
+        }.get(r["status"], f"failed: {r['error']}")
+        lines.append(f"  {r['label']:<20} {r['env']:<32} seed {r['seed']:<3} {state}")
+    evals = describe_evaluations(suite, runs)
+    if evals:
+        lines.append(f"{len(evals)} evaluations ({len(suite.evaluate.conditions)} conditions per run):")
+    for e in evals:
+        state = {"waiting": "waiting for training", "stale": "stale (older checkpoint)"}.get(e["status"], e["status"])
+        state = f"failed: {e['error']}" if e["status"] == "failed" else state
+        lines.append(f"  {e['label']:<20} {e['env']:<32} seed {e['seed']:<3} {e['condition']:<24} {state}")
+    return "\n".join(lines) + "\n"
+
+
+def _evaluate_missing(
+    pool: ProcessPoolExecutor, suite: SuiteConfig, runs: list[SuiteRun]
+) -> tuple[list[str], list[str]]:
+    """Evaluate every done run under every condition not evaluated for its final checkpoint yet; returns the tags
+    of the evaluations written and of those that failed."""
+    rows = describe_evaluations(suite, runs)
+    todo = [e for e in rows if e["status"] in ("new", "stale", "failed")]
+    waiting = sum(e["status"] == "waiting" for e in rows)
+    logger.info("suite %s: %d evaluations to run (%d wait for unfinished runs)", suite.name, len(todo), waiting)
+    if not todo:
+        return [], []
+    level = logging.getLogger("freamer_rl").getEffectiveLevel()
+    payloads = [eval_job(suite.evaluate, e["config"], e["run"].run_dir, _tag(e["run"]), level) for e in todo]
+    done: list[str] = []
+    failed: list[str] = []
+
+    def on_result(index: int, future: Any) -> tuple[bool, str]:
+        tag = payloads[index]["tag"]
+        try:
+            out = future.result()
+        except Exception as err:  # noqa: BLE001 -- BrokenProcessPool: the worker died; recorded like a failure
+            out = {"ok": False, "error": _error_line(err)}
+            path = Path(todo[index]["path"])
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(path, json.dumps({"condition": todo[index]["condition"], "error": out["error"]}) + "\n")
+        (done if out["ok"] else failed).append(tag)
+        return out["ok"], tag if out["ok"] else f"{tag} FAILED: {out['error']}"
+
+    _in_workers(
+        pool,
+        f"suite {suite.name} evaluation",
+        evaluate_condition,
+        payloads,
+        [None] * len(todo),
+        "evaluations",
+        on_result,
+    )
+    return done, failed
 
 
 def run_suite(
@@ -406,20 +576,37 @@ def run_suite(
 ) -> dict[str, Any]:
     """Train every run not yet done (``report_only``: none), then write the report.
 
+    With an ``evaluate`` section, every done run is then evaluated under its conditions (those not yet evaluated
+    for the run's final checkpoint) and the robustness report is written too.
+
     Returns ``{"output", "runs"`` (runs.csv rows), ``"trained"`` (tags of the runs trained to the end by this
-    call), ``"failed"`` (tags of failed runs)``}``."""
+    call), ``"failed"`` (tags of failed runs), ``"evaluated"`` / ``"eval_failed"`` (tags of this call's
+    evaluations that were written / that failed)``}``."""
     if jobs < 1:
         raise ConfigError(f"--jobs: expected at least 1, got {jobs}")
     suite, root, runs = plan_suite(path, output)
     field_name = "--output" if output is not None else "output"
     prepare_output_folder(root, field_name)  # before anything trains
     with _lock_results(root, field_name):
-        trained = [] if report_only else _train_missing(suite, root, runs, jobs)
+        trained, evaluated, eval_failed = [], [], []
+        if not report_only:
+            with _worker_pool(jobs) as pool:  # workers start on demand: none when nothing is left to do
+                trained = _train_missing(pool, suite, root, runs, jobs)
+                if suite.evaluate.conditions:
+                    try:
+                        evaluated, eval_failed = _evaluate_missing(pool, suite, runs)
+                    except BrokenProcessPool:  # a training worker died (killed, out of memory): fresh workers
+                        with _worker_pool(jobs) as fresh:
+                            evaluated, eval_failed = _evaluate_missing(fresh, suite, runs)
         results = write_report(root, suite.name, list(runs))
+        if suite.evaluate.conditions:
+            write_robustness(root, suite.name, results, suite.evaluate)
     rows = [{k: v for k, v in r.items() if k != "rows"} for r in results]
     return {
         "output": root,
         "runs": rows,
         "trained": [_tag(r) for r in trained],
         "failed": [f"{r['label']}/{r['env']}/seed{r['seed']}" for r in rows if r["status"] == "failed"],
+        "evaluated": evaluated,
+        "eval_failed": eval_failed,
     }

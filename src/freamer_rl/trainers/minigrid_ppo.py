@@ -429,6 +429,8 @@ def evaluate(
     path = Path(checkpoint)
     ckpt, cfg = read_checkpoint_config(path, FreamerConfig)
     torch.set_num_threads(cfg.run.threads)
+    # eager: compiling (~20 s) costs more than it saves over an evaluation's few thousand steps (same maths)
+    cfg.model.compile = False
     modules = build_modules(cfg)
     load_model_state(modules, ckpt["model"], path)
     modules.actor_value.eval()

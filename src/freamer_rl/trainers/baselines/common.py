@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from torchrl.modules import ActorValueOperator
+from torchrl.modules import ActorValueOperator, LSTMModule, set_recurrent_mode
 
 from freamer_rl.errors import CheckpointError
 from freamer_rl.run.corruption import corruption_transforms
@@ -18,7 +18,7 @@ from freamer_rl.run.loop import RunLoop
 from freamer_rl.run.metrics import LogMeans
 from freamer_rl.run.optim import StepStats, optimizer_step, restore_optimizer, scheduled_lr, set_lr
 from freamer_rl.run.params import parameter_rows
-from freamer_rl.trainers.baselines.networks import build_actor_critic
+from freamer_rl.trainers.baselines.networks import ObservationEncoder, build_actor_critic, recurrent_primers
 
 #: what shapes a baseline's weights: the env and the ``network`` section (the registry entries')
 STRUCTURAL = ("env", "network")
@@ -53,6 +53,9 @@ class ActorCriticRunLoop(RunLoop):
     def _policy(self) -> Any:
         return self.net.get_policy_operator()
 
+    def _primers(self) -> list:
+        return recurrent_primers(self.net)  # the *_lstm kinds' state; none for the feed-forward kinds
+
     def _env_transforms(self) -> list:
         return corruption_transforms(self.cfg.env.corrupt, "train")
 
@@ -65,12 +68,15 @@ class ActorCriticRunLoop(RunLoop):
     def _minibatch_steps(self, minibatches) -> dict[str, float]:
         """One shared optimiser step per minibatch (the trunk, then ``self.loss`` on the heads); mean detached logs.
 
-        ``minibatches``: TensorDicts ``[N]`` holding the observations, ``action``, ``action_log_prob``,
-        ``advantage`` and ``value_target``.
+        ``minibatches``: TensorDicts ``[N]`` (or ``[N, L]`` whole sequences for a recurrent trunk, which then runs
+        in recurrent mode as the loss's own forward does) holding the observations, ``action``,
+        ``action_log_prob``, ``advantage`` and ``value_target`` (and ``is_init`` plus the stored LSTM state).
         """
         means = LogMeans()
         for mb in minibatches:
-            loss_td = self.loss(self.common(mb))
+            with set_recurrent_mode(True):  # a feed-forward trunk ignores it
+                mb = self.common(mb)
+            loss_td = self.loss(mb)
             total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
             grad_norm = optimizer_step(
                 total, self.optimizer, self.params, self.cfg.optim.max_grad_norm, self.step_stats, foreach=True
@@ -116,13 +122,16 @@ def evaluate_actor_critic(path: Path, schema: type, **options: Any) -> dict[str,
     except RuntimeError as err:
         raise CheckpointError(f"checkpoint {path}: weights do not fit the network of its own config") from err
     net.eval()
-    result = run_episodes(cfg, net.get_policy_operator(), [], **options)
+    result = run_episodes(cfg, net.get_policy_operator(), recurrent_primers(net), **options)
     return {"checkpoint": str(path), **result, "frames_trained": ckpt.get("frames")}
 
 
 def actor_critic_params(cfg: Any) -> list[dict]:
-    """Parameter rows: encoder(s), actor head, critic head, Total."""
+    """Parameter rows: encoder(s), LSTM(s) (``*_lstm`` kinds), actor head, critic head, Total."""
     net = build_network(cfg)
-    return parameter_rows(
-        {"encoder": net.module[0], "actor head": net.get_policy_head(), "critic head": net.get_value_head()}
-    )
+    heads = {"actor head": net.get_policy_head(), "critic head": net.get_value_head()}
+    lstms = [m for m in net.modules() if isinstance(m, LSTMModule)]
+    if not lstms:
+        return parameter_rows({"encoder": net.module[0], **heads})
+    encoders = [m for m in net.modules() if isinstance(m, ObservationEncoder)]
+    return parameter_rows({"encoder": encoders, "lstm": lstms, **heads}, rest=net)

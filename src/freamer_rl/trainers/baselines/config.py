@@ -31,7 +31,11 @@ from freamer_rl.config.sections import (
 from freamer_rl.errors import ConfigError
 
 __all__ = [
+    "NETWORK_KINDS",
+    "FEEDFORWARD_KINDS",
+    "RECURRENT_KINDS",
     "NETWORK_INITS",
+    "lstm_width",
     "NetworkConfig",
     "network_init",
     "check_network",
@@ -44,22 +48,36 @@ __all__ = [
 ]
 
 
-NETWORK_RANGES: dict[str, Range] = {"network.hidden": size_range(WIDTH_LIMIT)}
+NETWORK_RANGES: dict[str, Range] = {
+    "network.hidden": size_range(WIDTH_LIMIT),
+    "network.lstm_hidden": size_range(WIDTH_LIMIT),
+}
+
+FEEDFORWARD_KINDS = ("mlp", "cnn")
+#: an encoder as the feed-forward kind's, then TorchRL's LSTMModule (``trainer: ppo_baseline`` only)
+RECURRENT_KINDS = ("mlp_lstm", "cnn_lstm")
+NETWORK_KINDS = FEEDFORWARD_KINDS + RECURRENT_KINDS
 
 
 NETWORK_INITS = ("auto", "orthogonal", "torch_default")
 
 
 def network_init(net: NetworkConfig) -> str:
-    """``network.init`` with ``auto`` resolved: ``torch_default`` for ``kind: mlp``, ``orthogonal`` for ``cnn``."""
+    """``network.init`` with ``auto`` resolved: ``torch_default`` for ``kind: mlp`` / ``mlp_lstm``, ``orthogonal``
+    for ``cnn`` / ``cnn_lstm`` (the LSTM itself always keeps PyTorch's init)."""
     if net.init != "auto":
         return net.init
-    return "torch_default" if net.kind == "mlp" else "orthogonal"
+    return "torch_default" if net.kind in ("mlp", "mlp_lstm") else "orthogonal"
+
+
+def lstm_width(net: NetworkConfig) -> int:
+    """The LSTM's hidden size of the ``*_lstm`` kinds: ``network.lstm_hidden``, else ``network.hidden``."""
+    return net.lstm_hidden if net.lstm_hidden is not None else net.hidden
 
 
 @dataclass
 class NetworkConfig:
-    kind: str = "mlp"  # mlp | cnn
+    kind: str = "mlp"  # mlp | cnn | mlp_lstm | cnn_lstm (the encoder of mlp / cnn, then an LSTM; ppo_baseline only)
     observation_keys: list[str] = field(default_factory=lambda: ["grid", "direction"])
     hidden: int = 256  # width of the encoder's last layer and of the heads' hidden layer
     shared: bool = False  # one trunk for actor and critic (true) or one encoder each (false)
@@ -68,12 +86,16 @@ class NetworkConfig:
     # PyTorch's own U(+-1/sqrt(fan_in)); auto: torch_default for kind mlp, orthogonal for kind cnn. On N2-S4 the
     # PPO-MLP reaches 95% in ~1,016 episodes with torch_default, ~1,604 with orthogonal (3 seeds; README baselines)
     init: str = "auto"
+    # hidden size of the LSTM of the *_lstm kinds (None: network.hidden); trained on ppo.sequence_length sequences
+    lstm_hidden: int | None = None
 
 
-def check_network(net: NetworkConfig) -> None:
-    """Every ``network`` field, named in the error."""
-    if net.kind not in ("mlp", "cnn"):
-        raise ConfigError(f"network.kind: expected 'mlp' or 'cnn', got {net.kind!r}")
+def check_network(net: NetworkConfig, kinds: tuple[str, ...] = FEEDFORWARD_KINDS) -> None:
+    """Every ``network`` field, named in the error; ``kinds``: those the trainer supports."""
+    if net.kind not in kinds:
+        others = [k for k in NETWORK_KINDS if k not in kinds]
+        note = f" ({', '.join(others)}: trainer ppo_baseline only)" if net.kind in others else ""
+        raise ConfigError(f"network.kind: expected one of {', '.join(kinds)}, got {net.kind!r}{note}")
     if not net.observation_keys:
         raise ConfigError("network.observation_keys: expected at least one observation key, got []")
     if len(set(net.observation_keys)) != len(net.observation_keys):
@@ -101,8 +123,8 @@ class PPOBaselineConfig(BaseConfig):
 
 def validate_ppo_baseline(cfg: PPOBaselineConfig) -> None:
     check_base(cfg)
-    check_ppo_layout(cfg)
-    check_network(cfg.network)
+    check_ppo_layout(cfg)  # ppo.sequence_length tiles the [envs, T] batch: the *_lstm kinds train on sequences
+    check_network(cfg.network, NETWORK_KINDS)
 
 
 VALIDATORS[PPOBaselineConfig] = validate_ppo_baseline

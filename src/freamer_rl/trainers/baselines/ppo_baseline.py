@@ -2,25 +2,33 @@
 PPO-CNN (Crafter pixels), chosen by the recipe's ``network`` section (``trainer: ppo_baseline``).
 
 The learning is what a TorchRL user writes from TorchRL's PPO tutorial: ``GAE`` over the batch, then ``epochs`` passes
-of shuffled minibatches of single steps through ``ClipPPOLoss``; the network is feed-forward, so steps need no
-sequence layout. The ``ppo`` section's values apply (lr, clip, entropy, GAE, minibatch, epochs, grad-norm clip);
-``ppo.sequence_length`` and the FreamerV1-only losses do not. ``model.modalities`` only decides what the env renders
-(``vision`` in it: MiniGrid pixels).
+of shuffled minibatches of single steps through ``ClipPPOLoss``; a feed-forward network (``network.kind`` mlp / cnn)
+needs no sequence layout. The recurrent kinds (``mlp_lstm`` / ``cnn_lstm``: TorchRL's ``LSTMModule``, the
+memory-matched baseline of FreamerV1's DNC) follow TorchRL's recurrent pattern instead: GAE runs the value network in
+recurrent mode over the ``[envs, T]`` batch from the LSTM states stored while collecting, then the minibatches are
+whole ``ppo.sequence_length`` sequences (:func:`sequence_minibatches`, shuffled as sequences) that the LSTM runs in
+recurrent mode from the stored state at ``t = 0``, reset wherever ``is_init``. The ``ppo`` section's values apply
+(lr, clip, entropy, GAE, minibatch, epochs, grad-norm clip, and ``sequence_length`` for the recurrent kinds); the
+FreamerV1-only losses do not. MiniGrid renders ``pixels`` only when ``network.observation_keys`` reads them.
 
     freamer-rl train recipes/baselines/ppo_mlp_n2s4.yaml run.seed=1
+    freamer-rl train recipes/baselines/ppo_lstm_n2s4.yaml run.seed=1
     freamer-rl train recipes/baselines/ppo_cnn_crafter.yaml
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import torch
 from tensordict import TensorDictBase
+from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 
 from freamer_rl.run.loop import resolve_run_dir
+from freamer_rl.run.sequences import split_sequences
 from freamer_rl.trainers.baselines.common import (
     STRUCTURAL,
     ActorCriticRunLoop,
@@ -28,13 +36,37 @@ from freamer_rl.trainers.baselines.common import (
     evaluate_actor_critic,
 )
 from freamer_rl.trainers.baselines.config import PPOBaselineConfig
+from freamer_rl.trainers.baselines.networks import is_recurrent
 from freamer_rl.trainers.ppo_loss import clip_ppo_loss
 
-__all__ = ["PPOBaselineConfig", "PPOBaselineTrainer", "STRUCTURAL", "train", "evaluate", "params"]
+__all__ = [
+    "PPOBaselineConfig",
+    "PPOBaselineTrainer",
+    "STRUCTURAL",
+    "sequence_minibatches",
+    "train",
+    "evaluate",
+    "params",
+]
+
+
+def sequence_minibatches(
+    data: TensorDictBase, sequence_length: int, minibatch_size: int, epochs: int
+) -> Iterator[TensorDictBase]:
+    """``epochs`` passes over the collected batch ``[*lead, T]`` cut into ``[n, sequence_length]`` whole
+    sequences (:func:`~freamer_rl.run.sequences.split_sequences`; ``n = minibatch_size // sequence_length``),
+    shuffled as sequences, never as steps: each pass holds every step exactly once, in time order within its row.
+    The ``"next"`` entries are left out (GAE is done)."""
+    seqs = split_sequences(data.exclude("next"), sequence_length)
+    per_minibatch = max(1, minibatch_size // sequence_length)
+    for _ in range(epochs):
+        for idx in torch.randperm(seqs.shape[0], device=seqs.device).split(per_minibatch):
+            yield seqs[idx]
 
 
 class PPOBaselineTrainer(ActorCriticRunLoop):
-    """``PPOBaselineTrainer(cfg, run_dir).train()``: collect, GAE, ClipPPOLoss on shuffled single-step minibatches."""
+    """``PPOBaselineTrainer(cfg, run_dir).train()``: collect, GAE, ClipPPOLoss on shuffled single-step minibatches
+    (feed-forward kinds) or on shuffled ``[n, ppo.sequence_length]`` sequences (``*_lstm`` kinds)."""
 
     trainer_name = "ppo_baseline"
 
@@ -42,8 +74,12 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         super().__init__(cfg, run_dir)
         p = cfg.ppo
         self.loss = clip_ppo_loss(self.actor, self.critic, p)
+        self.recurrent = is_recurrent(self.net)
+        # recurrent: GAE runs the value network in recurrent mode over the [*B, T] batch (root and "next" in turn,
+        # not under vmap), each row from its stored LSTM state at t = 0 and split wherever is_init starts an episode
+        extra = {"deactivate_vmap": True} if self.recurrent else {}
         self.gae = GAE(
-            gamma=p.gamma, lmbda=p.gae_lambda, value_network=self.net.get_value_operator(), average_gae=False
+            gamma=p.gamma, lmbda=p.gae_lambda, value_network=self.net.get_value_operator(), average_gae=False, **extra
         )
         self._start(resume)
 
@@ -54,8 +90,10 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
     def _learn(self, data: TensorDictBase) -> dict[str, float]:
         p = self.cfg.ppo
         self._current_lr()
-        with torch.no_grad():
+        with torch.no_grad(), set_recurrent_mode(self.recurrent):
             data = self.gae(data)
+        if self.recurrent:
+            return self._minibatch_steps(sequence_minibatches(data, p.sequence_length, p.minibatch_size, p.epochs))
         flat = data.exclude("next").reshape(-1)
         epochs = (torch.randperm(flat.numel(), device=flat.device).split(p.minibatch_size) for _ in range(p.epochs))
         return self._minibatch_steps(flat[idx] for epoch in epochs for idx in epoch)
