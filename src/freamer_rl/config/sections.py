@@ -63,6 +63,9 @@ class EnvConfig:
     imports: list[str] = field(default_factory=list)
     # modality corruption (freamer_rl.run.corruption), e.g. [{key: pixels, kind: gaussian, level: 1.0, when: eval}]
     corrupt: list[CorruptionConfig] = field(default_factory=list)
+    # second sensors of one observation, {new_key: source_key} (a float32 copy, written before any corruption), so a
+    # benchmark can corrupt one of two redundant views: {grid2: grid} (freamer_rl.run.corruption.SensorCopy)
+    copies: dict[str, str] = field(default_factory=dict)
     id: str = "MiniGrid-MultiRoom-N2-S4-v0"
     num_envs: int = 8
     reward_history: int = 8
@@ -203,6 +206,11 @@ def check_base(cfg: BaseConfig) -> None:
     check_collector(cfg.collector)
     check_logging(cfg.logging)
     check_corruption(cfg.env.corrupt)
+    for new, source in cfg.env.copies.items():
+        if problem := run_name_problem(new) if new else "an empty key":
+            raise ConfigError(f"env.copies: {new!r} is no observation key name ({problem})")
+        if new == source:
+            raise ConfigError(f"env.copies.{new}: a key cannot be a copy of itself")
 
 
 def check_corruption_kind(kind: str, level: Any, where: str) -> None:

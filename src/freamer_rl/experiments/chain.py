@@ -23,6 +23,10 @@ Overrides on the command line follow one rule: a key that is a chain-file field 
 after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
 every stage for a smoke test). ``run.seed`` is always the chain's ``seed``. The output folder is checked writable
 before the first stage; one overall progress bar (a log line per stage off a terminal) gives the ETA.
+
+A benchmark suite (:mod:`freamer_rl.experiments.suite`) runs a chain as one of its entries: a recipe path ending in
+``.chain.yaml`` (:func:`is_chain`) is a chain, trained by :func:`run_chain` with ``root=`` the suite's run folder and
+planned by :func:`plan_chain`.
 """
 
 from __future__ import annotations
@@ -42,7 +46,20 @@ from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CHAIN_KEYS", "ChainConfig", "StageConfig", "load_chain", "run_chain", "split_overrides"]
+__all__ = [
+    "CHAIN_KEYS",
+    "CHAIN_SUFFIX",
+    "ChainConfig",
+    "ChainPlan",
+    "StageConfig",
+    "is_chain",
+    "load_chain",
+    "plan_chain",
+    "run_chain",
+    "split_overrides",
+]
+
+CHAIN_SUFFIX = ".chain.yaml"
 
 
 @dataclass
@@ -118,27 +135,77 @@ def split_overrides(overrides: list[str] | None) -> tuple[list[str], list[str]]:
     return chain, stages
 
 
+def is_chain(path: str | Path) -> bool:
+    """Whether a recipe path names a chain file: its name ends in :data:`CHAIN_SUFFIX` (``.chain.yaml``)."""
+    return Path(path).name.endswith(CHAIN_SUFFIX)
+
+
+def _stage_plans(path: Path, cfg: ChainConfig, root: Path, stage_overrides: list[str]) -> list[tuple]:
+    """Per stage: (stage, recipe, run dir, overrides without run.init_from)."""
+    plans = []
+    for i, stage in enumerate(cfg.stages):
+        given = [*cfg.overrides, *stage.overrides, *stage_overrides, f"run.seed={cfg.seed}"]
+        plans.append((stage, _stage_recipe(path, stage, i), root / stage.name, given))
+    return plans
+
+
+@dataclass
+class ChainPlan:
+    """What a suite needs of a chain before it trains: its stage names in order, the last stage's env id (None when
+    its config has none), the sum of the stages' ``run.total_frames`` (None when one is unknown) and the last
+    stage's config."""
+
+    stages: list[str]
+    env: str | None
+    total_frames: int | None
+    last_config: Any = None
+
+
+def plan_chain(path: str | Path, overrides: list[str] | None = None) -> ChainPlan:
+    """Load the chain and every stage's config with ``overrides`` as :func:`run_chain` splits them; a
+    FreamerError (ConfigError naming the stage) when the chain or a stage does not load."""
+    path = Path(path)
+    chain_overrides, stage_overrides = split_overrides(overrides)
+    cfg = load_chain(path, chain_overrides)
+    budgets: list[int | None] = []
+    env = None
+    for i, (stage, recipe, _, given) in enumerate(_stage_plans(path, cfg, Path(), stage_overrides)):
+        try:
+            _, stage_cfg = load_recipe(recipe, given)
+        except ConfigError as err:
+            raise ConfigError(f"stages[{i}] ({stage.name}): {err}") from None
+        budgets.append(getattr(getattr(stage_cfg, "run", None), "total_frames", None))
+        env = getattr(getattr(stage_cfg, "env", None), "id", None)
+    total = None if any(b is None for b in budgets) else sum(budgets)  # type: ignore[arg-type]
+    return ChainPlan([s.name for s in cfg.stages], env if isinstance(env, str) else None, total, stage_cfg)
+
+
 def run_chain(
-    path: str | Path, overrides: list[str] | None = None, *, stage_overrides: list[str] | None = None
+    path: str | Path,
+    overrides: list[str] | None = None,
+    *,
+    stage_overrides: list[str] | None = None,
+    root: str | Path | None = None,
+    progress_bar: bool = True,
 ) -> list[dict[str, Any]]:
     """Train every stage in order (resumable); returns one row per stage and writes the chain summary.
 
     ``overrides`` are split by :func:`split_overrides`: chain-file fields (``seed=1``) edit the chain file, the
-    others (``run.total_frames=2048``) go to every stage after its own, as ``stage_overrides`` do. The output folder
-    is created and checked before the first stage trains."""
+    others (``run.total_frames=2048``) go to every stage after its own, as ``stage_overrides`` do. ``root``: the
+    chain's folder (stage ``s`` in ``<root>/<s>``; default ``<output_dir>/<name>-s<seed>``). ``progress_bar=False``:
+    log lines only, no bar even on a terminal (a suite's worker). The output folder is created and checked before
+    the first stage trains."""
     path = Path(path)
     overrides, given_to_stages = split_overrides(overrides)
     stage_overrides = [*given_to_stages, *(stage_overrides or [])]
     cfg = load_chain(path, overrides)
-    root = prepare_output_folder(Path(cfg.output_dir) / f"{cfg.name}-s{cfg.seed}", "output_dir")
-    plans = []  # (stage, recipe, run dir, overrides without run.init_from, its summary when finished)
-    for i, stage in enumerate(cfg.stages):
-        given = [*cfg.overrides, *stage.overrides, *stage_overrides, f"run.seed={cfg.seed}"]
-        plans.append((stage, _stage_recipe(path, stage, i), root / stage.name, given, _finished(root / stage.name)))
+    root = Path(root) if root is not None else Path(cfg.output_dir) / f"{cfg.name}-s{cfg.seed}"
+    root = prepare_output_folder(root, "output_dir")
+    # (stage, recipe, run dir, overrides without run.init_from, its summary when finished)
+    plans = [(*plan, _finished(plan[2])) for plan in _stage_plans(path, cfg, root, stage_overrides)]
     todo = [i for i, plan in enumerate(plans) if plan[4] is None]
-    progress = OverallProgress(
-        f"chain {cfg.name}", [_stage_frames(plans[i][1], plans[i][3]) for i in todo], item="stages"
-    )
+    weights = [_stage_frames(plans[i][1], plans[i][3]) for i in todo]
+    progress = OverallProgress(f"chain {cfg.name}", weights, item="stages") if progress_bar else None
     rows: list[dict[str, Any]] = []
     total = 0
     try:
@@ -149,7 +216,8 @@ def run_chain(
                 name, stage_cfg = load_recipe(recipe, given)
                 logger.info("chain %s: stage %d/%d %s (%s)", cfg.name, i + 1, len(plans), stage.name, recipe.name)
                 summary = get_trainer(name).train(stage_cfg, run_dir, resume=True)
-                progress.advance(todo.index(i), f"stage {stage.name} done: {int(summary['frames']):,} frames")
+                if progress is not None:
+                    progress.advance(todo.index(i), f"stage {stage.name} done: {int(summary['frames']):,} frames")
             else:
                 logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
             total += int(summary["frames"])
@@ -166,7 +234,8 @@ def run_chain(
                 }
             )
     finally:
-        progress.close()
+        if progress is not None:
+            progress.close()
     _write_summary(root, cfg, rows)
     return rows
 

@@ -5,8 +5,12 @@ Each run folder holds what its trainer wrote (``progress.csv``, ``summary.json``
 ``failed.txt`` (the error line of the last failed attempt). :func:`write_report` turns them into ``runs.csv``,
 ``summary.csv`` / ``summary.md``, ``curves.csv`` and ``curve_<env>_<metric>.png`` (mean across seeds with a min-max
 band). Runs whose ``summary.json`` holds the health trainer's evaluation (:data:`HEALTH_METRICS`) add the paper's
-Table 15 to ``summary.md``: per label, mean +- sample std across seeds. :func:`first_reaching`, :func:`mean_std` and
-:func:`plot_bands` are shared with ``benchmarks/curriculum_benchmark.py``.
+Table 15 to ``summary.md``: per label, mean +- sample std across seeds.
+
+A chain entry's run (:attr:`RunRecord.stages` set) holds one folder per stage; its row counts frames, episodes,
+wall time and frames / episodes to 95% across the stages (the earlier stages' totals plus the last stage's), takes
+its final metrics from the last stage, and its curve is the last stage's with frames and episodes shifted by the
+earlier stages'. ``summary.md`` marks its label ``(chain)``.
 """
 
 from __future__ import annotations
@@ -64,7 +68,7 @@ HEALTH_METRICS = (
 )
 
 
-# -- shared with benchmarks/curriculum_benchmark.py -----------------------------------------------------------------------------
+# -- helpers -----------------------------------------------------------------------------------------------------
 def _missing(v: Any) -> bool:
     return v is None or (isinstance(v, float) and math.isnan(v))
 
@@ -161,6 +165,7 @@ class RunRecord:
     run_dir: Path
     target_frames: int | None = None
     error: str | None = None  # a problem found before the run started (its config does not load)
+    stages: list[str] | None = None  # a chain entry's run: its stages' folder names in order; None: one recipe
 
 
 def _read_json(path: Path) -> dict | None:
@@ -180,11 +185,50 @@ def _read_progress(path: Path) -> list[dict]:
     return [r for r in rows if not math.isnan(r.get("frames", math.nan))]
 
 
-def run_status(run_dir: Path, target_frames: int | None) -> tuple[str, int]:
-    """``(status, frames)``: ``done`` (finished for this budget), ``failed`` (last attempt), ``partial``, ``new``."""
-    summary = _read_json(run_dir / "summary.json") or {}
+def _stage_views(run_dir: Path, stages: list[str]) -> list[tuple[dict, list[dict], int, int]]:
+    """Per stage of a chain run, in order: its summary.json (``{}`` before it finished), progress rows, frames and
+    episodes so far."""
+    views = []
+    for name in stages:
+        summary = _read_json(run_dir / name / "summary.json") or {}
+        rows = _read_progress(run_dir / name / "progress.csv")
+        last = rows[-1] if rows else {}
+        frames = max(
+            [f for f in (_as_float(summary.get("frames")), last.get("frames", math.nan)) if not math.isnan(f)] or [0]
+        )
+        episodes = summary.get("episodes", last.get("episodes"))
+        views.append((summary, rows, int(frames), 0 if _missing(episodes) else int(episodes)))
+    return views
+
+
+def _chain_view(rec: RunRecord) -> tuple[dict, list[dict]]:
+    """A chain run as one run: a summary-like dict counted across the stages and the last stage's shifted curve."""
+    views = _stage_views(rec.run_dir, rec.stages or [])
+    if not views:
+        return {}, []
+    frames_before = sum(v[2] for v in views[:-1])
+    episodes_before = sum(v[3] for v in views[:-1])
+    last, rows, _, _ = views[-1]
+    summary = {k: v for k, v in last.items() if k in ("final_success_rate", "final_return_mean", "crafter_score")}
+    summary["episodes"] = episodes_before + views[-1][3]
+    for key, before in (("frames_to_95", frames_before), ("episodes_to_95", episodes_before)):
+        summary[key] = None if _missing(last.get(key)) else before + int(last[key])
+    walls = [_as_float(v[0].get("wall_time_s")) for v in views]
+    if not any(math.isnan(w) for w in walls) and sum(walls) > 0:
+        summary["wall_time_s"] = sum(walls)
+        summary["fps"] = (frames_before + views[-1][2]) / sum(walls)
+    shift = {"frames": frames_before, "episodes": episodes_before}
+    return summary, [{k: v + shift.get(k, 0) for k, v in row.items()} for row in rows]
+
+
+def run_status(run_dir: Path, target_frames: int | None, stages: list[str] | None = None) -> tuple[str, int]:
+    """``(status, frames)``: ``done`` (finished for this budget), ``failed`` (last attempt), ``partial``, ``new``.
+    ``stages``: a chain run's stage folders (frames are counted across them)."""
+    summary = (_read_json(run_dir / "summary.json") or {}) if stages is None else {}
     done = _read_json(run_dir / DONE_NAME)
     frames = int(_as_float(summary.get("frames")) if summary.get("frames") is not None else 0)
+    if stages is not None:
+        frames = sum(v[2] for v in _stage_views(run_dir, stages))
     if done is not None:
         budget = done.get("total_frames")
         if target_frames is None or budget is None or budget >= target_frames:
@@ -216,9 +260,13 @@ def _final(summary: dict, last: dict, skey: str, pkey: str) -> float | None:
 
 def read_run(rec: RunRecord) -> dict[str, Any]:
     """One runs.csv row (plus ``rows``: its progress curve) from the run folder."""
-    status, frames = ("failed", 0) if rec.error else run_status(rec.run_dir, rec.target_frames)
-    summary = (_read_json(rec.run_dir / "summary.json") or {}) if status == "done" else {}
-    rows = _read_progress(rec.run_dir / "progress.csv")
+    status, frames = ("failed", 0) if rec.error else run_status(rec.run_dir, rec.target_frames, rec.stages)
+    if rec.stages is not None:
+        summary, rows = _chain_view(rec)
+        summary = summary if status == "done" else {}
+    else:
+        summary = (_read_json(rec.run_dir / "summary.json") or {}) if status == "done" else {}
+        rows = _read_progress(rec.run_dir / "progress.csv")
     last = rows[-1] if rows else {}
     error = rec.error if rec.error or status != "failed" else failed_line(rec.run_dir)
     out: dict[str, Any] = {
@@ -239,7 +287,7 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
     out["episodes"] = None if _missing(out["episodes"]) else int(out["episodes"])
     for key in (*(k for k, _, _ in HEALTH_METRICS), "params_encoder"):
         out[key] = None if _missing(summary.get(key)) else summary[key]
-    out.update(error=error, run_dir=str(rec.run_dir), env_dir=rec.env_dir, rows=rows)
+    out.update(error=error, run_dir=str(rec.run_dir), env_dir=rec.env_dir, chain=rec.stages is not None, rows=rows)
     return out
 
 
@@ -294,6 +342,7 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             "seeds": len(runs),
             "done_seeds": " ".join(str(r["seed"]) for r in done),
             "failed": sum(r["status"] == "failed" for r in runs),
+            "chain": any(r.get("chain") for r in runs),
         }
         for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps"):
             row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
@@ -417,7 +466,8 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     ]
     for r in rows:
         seeds = f"{r['seeds_done']}/{r['seeds']}" + (f" ({r['done_seeds']})" if r["done_seeds"] else "")
-        cells = [r["label"], r["env"], seeds, _cell(r, "frames", 0)]
+        label = f"{r['label']} (chain)" if r.get("chain") else r["label"]
+        cells = [label, r["env"], seeds, _cell(r, "frames", 0)]
         cells += [_cell(r, "success_rate", 3)] if has_success else []
         cells += [_cell(r, "return_mean", 2)]
         cells += [f"{_cell(r, 'crafter_score', 2)} [{r['crafter_score_per_seed']}]"] if has_crafter else []
@@ -425,6 +475,12 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [_cell(r, "fps", 0)]
         cells += [_iqm_cell(r, "success_rate", 3), _iqm_cell(r, "episodes_to_95", 0)] if has_success else []
         lines.append("| " + " | ".join(cells) + " |")
+    if any(r.get("chain") for r in rows):
+        lines += [
+            "",
+            "(chain): a curriculum chain; its frames, episodes and to-95% values are counted across all its stages, "
+            "its final values are its last stage's (the env shown).",
+        ]
     lines += health_markdown(rows)
     failed = [r for r in results if r["status"] == "failed"]
     if failed:

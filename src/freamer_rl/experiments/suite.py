@@ -27,6 +27,16 @@ second suite on the same folder is refused, naming the holder's pid). Workers di
 bar with an ETA (frames-weighted when every run's budget is known; a log line per finished run when not on a
 terminal) replaces the per-run lines.
 
+An entry whose recipe ends in ``.chain.yaml`` is a chain (:mod:`freamer_rl.experiments.chain`, a curriculum): each
+seed runs the whole chain (``run_chain(..., seed=<k>)``) in ``<output>/runs/<label>/<env folder of its last
+stage>/seed<k>`` (stage ``s`` in ``.../seed<k>/<s>``), resumably like a recipe run (``done.json`` once the last stage
+finished). The suite's and the entry's overrides are the chain-level overrides (after each stage's own, so
+``run.total_frames=2048`` shrinks every stage); the suite's ``envs`` and ``total_frames`` do not apply (the stages
+carry their env ids and frame caps; the run's budget is the sum of the caps). ``envs`` on a chain entry, a ``seed=``
+or ``output_dir=`` override, and ``evaluate`` conditions in a suite with a chain entry are refused. The report
+counts a chain run's frames, episodes and frames / episodes to 95% across its stages and shows its last stage's
+curve, shifted by the earlier stages' frames and episodes.
+
 An optional ``evaluate:`` section (:class:`~freamer_rl.experiments.robustness.EvaluateConfig`: episodes, seed,
 metric, conditions of evaluation-time corruption, ``compare`` pairs of entry labels) has every finished run
 evaluated under every condition in the same workers after training (``<run_dir>/eval/<condition>.json``; one already
@@ -59,6 +69,7 @@ import torch
 from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
 from freamer_rl.errors import ConfigError, FreamerError
+from freamer_rl.experiments.chain import is_chain, plan_chain, run_chain, split_overrides
 from freamer_rl.experiments.folders import prepare_output_folder
 from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, failed_line, run_status, write_report
@@ -152,12 +163,30 @@ def _validate_suite(cfg: SuiteConfig) -> None:
         if entry.label in seen:
             raise ConfigError(f"entries[{i}].label: {entry.label!r} is used twice")
         seen.add(entry.label)
-        if entry.envs is not None:
+        if is_chain(entry.recipe):
+            _check_chain_entry(cfg, i, entry)
+        elif entry.envs is not None:
             if not entry.envs:
                 raise ConfigError(f"entries[{i}].envs: an empty list (leave it out to use the suite's envs)")
             _check_envs(entry.envs, f"entries[{i}].envs")
     if cfg.evaluate != EvaluateConfig():
         check_evaluate(cfg.evaluate, [e.label for e in cfg.entries])
+
+
+def _check_chain_entry(cfg: SuiteConfig, i: int, entry: SuiteEntry) -> None:
+    if entry.envs is not None:
+        raise ConfigError(
+            f"entries[{i}].envs: {entry.recipe!r} is a chain, whose stages name their own env ids; leave envs out"
+        )
+    for where, items in ((f"entries[{i}].overrides", entry.overrides), ("overrides", cfg.overrides)):
+        for item in split_overrides(items)[0]:
+            if item.split("=", 1)[0].strip() in ("seed", "output_dir"):
+                raise ConfigError(f"{where}: {item!r}: a chain entry's seed and folder are the suite's")
+    if cfg.evaluate.conditions:
+        raise ConfigError(
+            f"entries[{i}].recipe: {entry.recipe!r} is a chain, which the evaluate section cannot evaluate; "
+            "drop the entry or evaluate its last stage's recipe"
+        )
 
 
 VALIDATORS[SuiteConfig] = _validate_suite
@@ -226,6 +255,30 @@ def _plan_run(suite: SuiteConfig, entry: SuiteEntry, recipe: Path, env: str | No
     )
 
 
+def _plan_chain_run(suite: SuiteConfig, entry: SuiteEntry, chain: Path, seed: int, root: Path) -> SuiteRun:
+    """A chain entry's run: the suite's and entry's overrides go to every stage; ``seed=<k>`` edits the chain."""
+    given = [*suite.overrides, *entry.overrides, f"seed={seed}"]
+    error, plan = None, None
+    try:
+        plan = plan_chain(chain, given)
+    except FreamerError as err:
+        error = f"{chain}: {err}" if str(chain) not in str(err) else str(err)
+    env = plan.env if plan is not None and plan.env else "default"
+    env = env if not run_name_problem(env_folder(env)) else "default"
+    return SuiteRun(
+        label=entry.label,
+        env=env,
+        env_dir=env_folder(env),
+        seed=seed,
+        run_dir=root / "runs" / entry.label / env_folder(env) / f"seed{seed}",
+        target_frames=plan.total_frames if plan is not None else None,
+        error=error,
+        stages=plan.stages if plan is not None else [],
+        recipe=chain,
+        overrides=given + (_quiet_override(plan.last_config) if plan is not None else []),
+    )
+
+
 def plan_suite(path: str | Path, output: str | Path | None = None) -> tuple[SuiteConfig, Path, list[SuiteRun]]:
     """The suite, its results folder and every run (entry x env x seed, in that order); a run whose config does not
     load carries the error (it fails without training)."""
@@ -235,6 +288,9 @@ def plan_suite(path: str | Path, output: str | Path | None = None) -> tuple[Suit
     runs = []
     for entry in suite.entries:
         recipe = path.parent / entry.recipe
+        if is_chain(recipe):
+            runs += [_plan_chain_run(suite, entry, recipe, seed, root) for seed in suite.seeds]
+            continue
         envs: list[str | None] = list(entry.envs if entry.envs is not None else suite.envs) or [None]
         runs += [_plan_run(suite, entry, recipe, env, seed, root) for env in envs for seed in suite.seeds]
     return suite, root, runs
@@ -244,7 +300,7 @@ def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
     """Per run: label, env, seed, status (done / partial / new / failed) and frames so far (for ``--dry-run``)."""
     rows = []
     for run in runs:
-        status, frames = ("failed", 0) if run.error else run_status(run.run_dir, run.target_frames)
+        status, frames = ("failed", 0) if run.error else run_status(run.run_dir, run.target_frames, run.stages)
         error = run.error or (failed_line(run.run_dir) if status == "failed" else None)
         rows.append(
             {
@@ -311,7 +367,8 @@ def _error_line(err: BaseException) -> str:
 
 
 def _train_run(job: dict[str, Any]) -> dict[str, Any]:
-    """Worker: train one run through the trainer registry (resuming), then write ``done.json`` or ``failed.txt``."""
+    """Worker: train one run through the trainer registry, or a chain entry's run through ``run_chain`` (resuming),
+    then write ``done.json`` or ``failed.txt``."""
     logging.basicConfig(
         force=True, level=job["log_level"], format=f"%(asctime)s %(levelname)s [{job['tag']}] %(name)s: %(message)s"
     )
@@ -320,8 +377,12 @@ def _train_run(job: dict[str, Any]) -> dict[str, Any]:
     (run_dir / FAILED_NAME).unlink(missing_ok=True)
     t0 = time.perf_counter()
     try:
-        name, cfg = load_recipe(job["recipe"], job["overrides"])
-        summary = get_trainer(name, job["recipe"]).train(cfg, run_dir, resume=True)
+        if is_chain(job["recipe"]):  # the chain's frames in all, the last stage's success
+            stages = run_chain(job["recipe"], job["overrides"], root=run_dir, progress_bar=False)
+            summary = {"frames": stages[-1]["chain_frames"], "final_success_rate": stages[-1]["final_success_rate"]}
+        else:
+            name, cfg = load_recipe(job["recipe"], job["overrides"])
+            summary = get_trainer(name, job["recipe"]).train(cfg, run_dir, resume=True)
     except Exception as err:  # recorded; the suite goes on with the other runs
         if not isinstance(err, FreamerError):
             logger.exception("run %s failed", job["tag"])

@@ -38,7 +38,7 @@ from torchrl.envs.transforms import Transform
 from freamer_rl.config.sections import check_corruption_kind
 from freamer_rl.errors import ConfigError
 
-__all__ = ["ModalityCorruption", "corruption_transforms", "eval_entries"]
+__all__ = ["ModalityCorruption", "SensorCopy", "corruption_transforms", "copy_transforms", "eval_entries"]
 
 _INTEGER_ONLY = {"salt"}
 _FLOAT_OR_PIXELS = {"gaussian"}
@@ -199,6 +199,37 @@ class ModalityCorruption(Transform):
 
     def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
         return self._corrupt(tensordict, None)
+
+
+class SensorCopy(Transform):
+    """A second sensor of one observation: ``new_key`` = ``source_key`` as float32 (``env.copies: {new: source}``),
+    written on reset and step before any corruption, so the two views can be corrupted one at a time."""
+
+    def __init__(self, new_key: str, source_key: str) -> None:
+        super().__init__(in_keys=[source_key], out_keys=[new_key])
+        self.new_key, self.source_key = new_key, source_key
+
+    def transform_observation_spec(self, observation_spec):
+        keys = observation_spec.keys(True)
+        if self.source_key not in keys:
+            known = ", ".join(str(k) for k in observation_spec.keys(True, True))
+            raise ConfigError(f"env.copies.{self.new_key}: the env has no observation {self.source_key!r} ({known})")
+        if self.new_key in keys:
+            raise ConfigError(f"env.copies.{self.new_key}: the env already has an observation {self.new_key!r}")
+        spec = observation_spec[self.source_key]
+        observation_spec[self.new_key] = Unbounded(spec.shape, device=spec.device, dtype=torch.float32)
+        return observation_spec
+
+    def _apply_transform(self, x: torch.Tensor) -> torch.Tensor:
+        return x.to(torch.float32)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._call(tensordict_reset)
+
+
+def copy_transforms(copies: dict[str, str]) -> list[SensorCopy]:
+    """The ``env.copies`` entries as transforms, in order."""
+    return [SensorCopy(new, source) for new, source in copies.items()]
 
 
 def eval_entries(config_entries: list, override: list | None) -> list:

@@ -19,6 +19,7 @@ from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, St
 
 from freamer_rl.errors import ConfigError
 from freamer_rl.run import env_registry
+from freamer_rl.run.corruption import copy_transforms
 
 __all__ = [
     "ENV_WRITTEN",
@@ -80,8 +81,11 @@ def env_options(cfg: Any) -> dict[str, Any]:
 
 
 def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
+    """One env of the config (with its ``env.copies`` sensors)."""
     import_env_modules(cfg.env)
-    return env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
+    env = env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
+    copies = copy_transforms(getattr(cfg.env, "copies", {}))
+    return TransformedEnv(env, Compose(*copies)) if copies else env
 
 
 def _single_env_fn(adapter: str, env_id: str, options: dict, imports: tuple[str, ...]) -> EnvBase:
@@ -92,8 +96,8 @@ def _single_env_fn(adapter: str, env_id: str, options: dict, imports: tuple[str,
 def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None = None) -> EnvBase:
     """``num_envs`` (default ``env.num_envs``) copies in one process (2 cores do not profit from ParallelEnv): the
     adapter's own batched env when it has one (``EnvAdapter.make_batched_env``), else a SerialEnv of single envs;
-    then InitTracker, StepCounter, RewardSum and copies of ``transforms`` (after RewardSum, so episode returns stay
-    the env's own)."""
+    then the ``env.copies`` sensors, InitTracker, StepCounter, RewardSum and copies of ``transforms`` (after
+    RewardSum, so episode returns stay the env's own)."""
     import_env_modules(cfg.env)
     n = num_envs or cfg.env.num_envs
     adapter = env_registry.get_adapter(cfg.env.adapter)
@@ -102,7 +106,10 @@ def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None
     else:
         make = functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg), tuple(cfg.env.imports))
         base = SerialEnv(n, make)
-    env = TransformedEnv(base, Compose(InitTracker(), StepCounter(), RewardSum(), *[t.clone() for t in transforms]))
+    copies = copy_transforms(getattr(cfg.env, "copies", {}))
+    env = TransformedEnv(
+        base, Compose(*copies, InitTracker(), StepCounter(), RewardSum(), *[t.clone() for t in transforms])
+    )
     env.set_seed(seed)
     return env
 
