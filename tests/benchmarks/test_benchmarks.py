@@ -1,17 +1,16 @@
 """The benchmarks: every shipped suite (recipes/suites/) plans, the suites' PPO-MLP recipes stand beside the FreamerV1
-runs they are compared with, the suite report's health table, and the curriculum script (tiny budgets; the real
-figures come from the benchmark commands)."""
+runs they are compared with, and the suite report's health table (tiny budgets; the real figures come from the
+benchmark commands; a curriculum chain as a suite entry: tests/experiments/test_suite.py)."""
 
 import json
 import os
-import shutil
 import statistics
-import sys
 from pathlib import Path
 
 import pytest
 import torch
 
+from freamer_rl.experiments.chain import is_chain
 from freamer_rl.experiments.report import RunRecord, write_report
 from freamer_rl.experiments.suite import describe, load_suite, plan_suite, run_suite
 from freamer_rl.trainers.baselines.common import build_network
@@ -19,7 +18,6 @@ from freamer_rl.trainers.registry import load_recipe
 
 ROOT = Path(__file__).resolve().parents[2]
 SUITES = sorted((ROOT / "recipes" / "suites").glob("*.yaml"))
-sys.path.insert(0, str(ROOT / "benchmarks"))
 
 
 @pytest.mark.parametrize("path", SUITES, ids=[p.stem for p in SUITES])
@@ -32,6 +30,7 @@ def test_every_shipped_suite_plans(path, tmp_path):
     assert {row["status"] for row in describe(runs)} == {"new"}
     if suite.total_frames is not None:  # an entry's own run.total_frames override wins over the suite's
         own = {e.label for e in suite.entries if any(o.startswith("run.total_frames=") for o in e.overrides)}
+        own |= {e.label for e in suite.entries if is_chain(e.recipe)}  # a chain's stages have their own caps
         assert {r.target_frames for r in runs if r.label not in own} == {suite.total_frames}
 
 
@@ -190,21 +189,3 @@ def test_report_has_no_health_table_without_health_runs(tmp_path):
     write_report(tmp_path, "plain", [RunRecord(label="a", env="e", env_dir="e", seed=0, run_dir=run_dir)])
     assert "Health world model" not in (tmp_path / "summary.md").read_text()
     assert "eval_return_mean" not in (tmp_path / "runs.csv").read_text().splitlines()[0]
-
-
-def test_curriculum_benchmark_reports_chain_frames_and_reads_back(tmp_path):
-    import curriculum_benchmark
-
-    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
-    chain = tmp_path / "c.chain.yaml"
-    chain.write_text(
-        "name: demo\nstages:\n  - {name: a, recipe: tiny.yaml}\n"
-        "  - {name: b, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n"
-    )
-    out = tmp_path / "out"
-    text = curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])
-    assert "| 0 | a 256 |" in text and "MiniGrid-MultiRoom-N1-S4-v0" in text
-    assert (out / "learning_curve.png").is_file() and (out / "results.csv").read_text().startswith("seed,")
-    stamp = (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime
-    curriculum_benchmark.main([str(chain), "--seeds", "0", "--workers", "1", "--out", str(out)])  # read back
-    assert (out / "runs" / "demo-s0" / "b" / "summary.json").stat().st_mtime == stamp

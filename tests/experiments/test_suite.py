@@ -1,6 +1,7 @@
 """Benchmark suites (freamer_rl.experiments.suite): recipes x envs x seeds in worker processes, resumable, with a report."""
 
 import csv
+import json
 import shutil
 from pathlib import Path
 
@@ -8,6 +9,7 @@ import pytest
 
 from freamer_rl.cli import main
 from freamer_rl.errors import ConfigError
+from freamer_rl.experiments.report import RunRecord, write_report
 from freamer_rl.experiments.suite import env_folder, load_suite, plan_suite, run_suite
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -133,6 +135,15 @@ def test_plan_folders_and_overrides(tmp_path, monkeypatch):
         ("name: demo\ntotal_frames: 0\nentries: [{label: a, recipe: tiny.yaml}]\n", "total_frames: "),
         ("name: demo\nentries: []\n", "entries: "),
         ("name: ../demo\nentries: [{label: a, recipe: tiny.yaml}]\n", "name: "),
+        (
+            "name: demo\nentries: [{label: c, recipe: c.chain.yaml, envs: [MiniGrid-Empty-5x5-v0]}]\n",
+            r"entries\[0\].envs: 'c.chain.yaml' is a chain",
+        ),
+        ("name: demo\nentries: [{label: c, recipe: c.chain.yaml, overrides: [seed=3]}]\n", r"entries\[0\].overrides"),
+        (
+            "name: demo\nevaluate: {conditions: [{label: clean}]}\nentries: [{label: c, recipe: c.chain.yaml}]\n",
+            r"entries\[0\].recipe: .* cannot evaluate",
+        ),
     ],
 )
 def test_suite_validation_names_the_field(tmp_path, text, field):
@@ -161,3 +172,59 @@ def test_example_suite_plans(tmp_path):
     # every suite shipped in recipes/suites plans without a config error (recipes of every trainer load)
     for path in sorted((ROOT / "recipes" / "suites").glob("*.yaml")):
         assert all(r.error is None for r in plan_suite(path, tmp_path / path.stem)[2]), path
+
+
+ROOMS = "MiniGrid-MultiRoom-N1-S4-v0"
+
+
+def test_a_chain_entry_trains_beside_a_recipe_resumes_and_reports_across_its_stages(tmp_path, capsys):
+    """A ``.chain.yaml`` entry: each seed runs the whole chain in its run folder (the last stage's env), the suite's
+    total_frames does not apply to it, its row counts frames across the stages, a rerun trains nothing."""
+    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
+    (tmp_path / "c.chain.yaml").write_text(
+        "name: demo_chain\nstages:\n  - {name: empty, recipe: tiny.yaml, overrides: [run.total_frames=128]}\n"
+        f"  - {{name: rooms, recipe: tiny.yaml, overrides: [env.id={ROOMS}]}}\n"
+    )
+    path = tmp_path / "mixed.yaml"
+    path.write_text(
+        "name: mixed\nseeds: [0]\ntotal_frames: 128\noverrides: [ppo.epochs=1]\nentries:\n"
+        "  - {label: plain, recipe: tiny.yaml}\n  - {label: cur, recipe: c.chain.yaml}\n"
+    )
+    out = tmp_path / "out"
+    _, _, runs = plan_suite(path, out)
+    assert [(r.label, r.env, r.target_frames) for r in runs] == [("plain", ENV, 128), ("cur", ROOMS, 128 + 256)]
+    result = run_suite(path, output=out)
+    assert sorted(result["trained"]) == [f"cur/{ROOMS}/seed0", f"plain/{ENV}/seed0"]
+    run_dir = out / "runs" / "cur" / ROOMS / "seed0"
+    assert json.loads((run_dir / "done.json").read_text())["frames"] == 384
+    assert f"init_from: {run_dir / 'empty'}" in (run_dir / "rooms" / "config.yaml").read_text()
+    assert "epochs: 1" in (run_dir / "rooms" / "config.yaml").read_text()  # the suite's overrides reach the stages
+    rows = {r["label"]: r for r in _rows(out / "runs.csv")}
+    assert rows["cur"]["status"] == "done" and rows["cur"]["frames"] == "384" and rows["cur"]["env"] == ROOMS
+    assert rows["cur"]["episodes"] != "" and rows["plain"]["frames"] == "128"
+    curve = [r for r in _rows(out / "curves.csv") if r["label"] == "cur"]
+    assert [int(r["frames"]) for r in curve] == [128 + 128, 128 + 256]  # the last stage, after the first's frames
+    assert f"| cur (chain) | {ROOMS} | 1/1 (0) | 384 |" in (out / "summary.md").read_text()
+
+    stamps = {p: p.stat().st_mtime_ns for p in run_dir.glob("*/summary.json")}
+    assert run_suite(path, output=out)["trained"] == []  # done: skipped
+    (run_dir / "done.json").unlink()  # finished stages but no marker: partial, and the rerun reads them back
+    assert main(["suite", str(path), "--output", str(out), "--dry-run"]) == 0
+    assert "partial (384 frames)" in capsys.readouterr().out
+    assert run_suite(path, output=out)["trained"] == [f"cur/{ROOMS}/seed0"]
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps and (run_dir / "done.json").is_file()
+
+
+def test_chain_run_report_counts_to_95_across_the_stages(tmp_path):
+    run_dir = tmp_path / "runs" / "c" / "e" / "seed0"
+    stages = {"a": (1000, 40, None, None), "b": (500, 10, 300, 6)}  # frames, episodes, frames / episodes to 95%
+    for name, (frames, episodes, f95, e95) in stages.items():
+        (run_dir / name).mkdir(parents=True)
+        summary = {"frames": frames, "episodes": episodes, "frames_to_95": f95, "episodes_to_95": e95}
+        (run_dir / name / "summary.json").write_text(json.dumps({**summary, "final_success_rate": 0.97}))
+        (run_dir / name / "progress.csv").write_text(f"frames,episodes,success_rate\n{frames},{episodes},0.97\n")
+    (run_dir / "done.json").write_text(json.dumps({"total_frames": 1500, "frames": 1500}))
+    record = RunRecord(label="c", env="e", env_dir="e", seed=0, run_dir=run_dir, target_frames=1500, stages=["a", "b"])
+    (row,) = write_report(tmp_path, "demo", [record])
+    assert (row["frames"], row["episodes"], row["frames_to_95"], row["episodes_to_95"]) == (1500, 50, 1300, 46)
+    assert row["success_rate"] == 0.97 and [(r["frames"], r["episodes"]) for r in row["rows"]] == [(1500, 50)]

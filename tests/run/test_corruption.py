@@ -10,7 +10,9 @@ from torchrl.envs.utils import check_env_specs
 
 from freamer_rl.config.sections import CorruptionConfig
 from freamer_rl.errors import ConfigError
-from freamer_rl.run.corruption import ModalityCorruption, corruption_transforms
+from freamer_rl.run.corruption import ModalityCorruption, SensorCopy, corruption_transforms
+from freamer_rl.run.envs import make_batched_env, probe_specs
+from freamer_rl.trainers.minigrid_ppo import build_modules
 from freamer_rl.trainers.registry import TRAINERS, load_config
 from freamer_rl_envs.minigrid import make_minigrid_env
 
@@ -245,3 +247,47 @@ def test_cli_eval_takes_corruptions(tmp_path, capsys):
     assert "error: --corrupt 'grid:salt': expected KEY:KIND:LEVEL" in capsys.readouterr().err
     assert cli.main(["eval", str(tmp_path / "run"), "--episodes", "2", "--corrupt", "grid:blur:1"]) == 2
     assert "env.corrupt[0].kind: expected one of" in capsys.readouterr().err
+
+
+def test_sensor_copy_is_a_float_second_view_corrupted_on_its_own():
+    torch.manual_seed(0)
+    env = _env(SensorCopy("grid2", "grid"), ModalityCorruption("grid2", "gaussian", 1.0))
+    check_env_specs(env)
+    td = env.rollout(6, break_when_any_done=False)
+    assert td["grid2"].dtype == torch.float32 and td["grid2"].shape == td["grid"].shape
+    noise = td["grid2"] - td["grid"].float()
+    assert noise.std() > 0.5  # the copy is corrupted (sigma = the copy's running std of the grid values)
+    assert td["grid"].dtype == torch.int64 and td["grid"].max() <= 10  # the source sensor is untouched
+    env.close()
+    clean = _env(SensorCopy("grid2", "grid")).rollout(4, break_when_any_done=False)
+    torch.testing.assert_close(clean["grid2"], clean["grid"].float())
+    torch.testing.assert_close(clean["next", "grid2"], clean["next", "grid"].float())
+
+
+@pytest.mark.parametrize(
+    "copies, message",
+    [
+        ({"grid2": "lidar"}, "env.copies.grid2: the env has no observation 'lidar'"),
+        ({"direction": "grid"}, "env.copies.direction: the env already has an observation 'direction'"),
+    ],
+)
+def test_a_copy_the_env_cannot_make_is_one_line(copies, message, tmp_path):
+    cfg = load_config(TINY, [f"env.copies={{{', '.join(f'{k}: {v}' for k, v in copies.items())}}}"])
+    with pytest.raises(ConfigError, match=message):
+        probe_specs(cfg)
+
+
+def test_a_key_copied_onto_itself_is_refused():
+    with pytest.raises(ConfigError, match="env.copies.grid: a key cannot be a copy of itself"):
+        load_config(TINY, ["env.copies={grid: grid}"])
+
+
+def test_the_redundant_sensor_recipe_reads_both_views(tmp_path):
+    cfg = load_config(ROOT / "recipes" / "minigrid_redundant_sensors.yaml", ["model.compile=false"])
+    modules = build_modules(cfg)
+    env = make_batched_env(cfg, modules.primers(), 0, num_envs=2)
+    with torch.no_grad():
+        td = env.rollout(3, modules.policy, break_when_any_done=False)
+    env.close()
+    assert set(modules.refiners) == {"state", "vector", "reward"}
+    assert ("embed", "vector") in td.keys(True) and torch.isfinite(td["embed", "vector"]).all()
