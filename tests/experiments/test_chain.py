@@ -12,7 +12,7 @@ from torchrl.envs.utils import check_env_specs
 
 from freamer_rl import cli
 from freamer_rl.errors import CheckpointError, ConfigError, EnvSetupError
-from freamer_rl.experiments.chain import load_chain, run_chain, split_overrides
+from freamer_rl.experiments.chain import is_chain, load_chain, plan_chain, run_chain, split_overrides
 from freamer_rl.run.envs import make_single_env
 from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.trainers.registry import load_config
@@ -140,6 +140,22 @@ def test_chain_level_overrides_apply_after_each_stages_own(tmp_path):
     summary = json.loads((tmp_path / "runs" / "demo-s4" / "chain_summary.json").read_text())  # seed=4: the file's
     assert summary["seed"] == 4 and [s["frames"] for s in summary["stages"]] == [128, 128]
     assert "seed: 4" in (tmp_path / "runs" / "demo-s4" / "b" / "config.yaml").read_text()
+
+
+def test_plan_chain_gives_stages_last_env_and_budget_and_names_a_bad_stage(tmp_path):
+    """What a suite plans a chain entry with, before anything trains; chain-level overrides reach every stage."""
+    path = _write_chain(
+        tmp_path,
+        "  - {name: a, recipe: tiny.yaml, overrides: [run.total_frames=512]}\n"
+        "  - {name: b, recipe: tiny.yaml, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n",
+    )
+    plan = plan_chain(path, ["seed=1"])
+    assert (plan.stages, plan.env, plan.total_frames) == (["a", "b"], "MiniGrid-MultiRoom-N1-S4-v0", 512 + 256)
+    assert plan_chain(path, ["run.total_frames=64"]).total_frames == 128
+    with pytest.raises(ConfigError, match=r"stages\[0\] \(a\): .*optim.lr"):
+        plan_chain(path, ["optim.lr=fast"])
+    assert is_chain(path) and not is_chain(TINY)
+    assert not (tmp_path / "runs").exists()  # planning trains nothing
 
 
 def test_split_overrides_follows_the_chain_keys():
