@@ -46,32 +46,21 @@ written for the run's final checkpoint is skipped, a failed one is retried), and
 
 from __future__ import annotations
 
-import ctypes
 import json
 import logging
-import multiprocessing as mp
-import os
 import re
-import signal
-import sys
-import threading
 import time
-from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import torch
 
 from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.chain import is_chain, plan_chain, run_chain, split_overrides
 from freamer_rl.experiments.folders import prepare_output_folder
-from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, failed_line, run_status, write_report
 from freamer_rl.experiments.robustness import (
     EvaluateConfig,
@@ -83,8 +72,9 @@ from freamer_rl.experiments.robustness import (
     evaluate_condition,
     write_robustness,
 )
+from freamer_rl.experiments.workers import in_workers, worker_pool
 from freamer_rl.run.checkpoint import atomic_write_text
-from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm
+from freamer_rl.run.rundir import RunDirLock
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
@@ -317,50 +307,7 @@ def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
     return rows
 
 
-# -- workers ---------------------------------------------------------------------------------------------------------
-_PR_SET_PDEATHSIG = 1  # linux/prctl.h
-_ORPHAN_GRACE_S = 60.0  # an orphaned worker's time to checkpoint after SIGTERM before it exits regardless
-# In a worker: set once the suite stops (the suite's shared event) or the worker is orphaned (its own), so that the
-# jobs ProcessPoolExecutor had already queued to it return at once instead of training after the SIGTERM
-_SUITE_STOP: Any = None
-_ORPHANED = threading.Event()
-
-
-def _watch_parent(parent: int) -> None:
-    """Watchdog thread of a worker: once the suite process is gone (the worker was re-parented), SIGTERM itself (the
-    trainer checkpoints and stops, releasing its run lock), then exit after a grace period in any case."""
-    while os.getppid() == parent:
-        time.sleep(1.0)
-    _ORPHANED.set()
-    os.kill(os.getpid(), signal.SIGTERM)
-    time.sleep(_ORPHAN_GRACE_S)
-    os._exit(143)
-
-
-def _init_worker(parent: int, stop: Any = None) -> None:
-    """Worker start: one torch thread; die with the suite process, even when it is killed with ``kill -9`` (a worker
-    left training would hold its run lock, so a rerun would be refused): the kernel sends SIGTERM when the parent dies
-    (Linux ``prctl(PR_SET_PDEATHSIG)``), and a parent-pid watchdog thread covers other systems and a parent that died
-    before the ``prctl``. ``stop``: the suite's stop event (see :func:`_unless_stopped`)."""
-    global _SUITE_STOP
-    _SUITE_STOP = stop
-    torch.set_num_threads(1)
-    if sys.platform.startswith("linux"):
-        try:
-            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0)
-        except (OSError, AttributeError) as err:  # no prctl: the watchdog alone
-            logger.debug("prctl(PR_SET_PDEATHSIG) unavailable: %s", err)
-    threading.Thread(target=_watch_parent, args=(parent,), name="suite-parent-watchdog", daemon=True).start()
-
-
-def _unless_stopped(worker: Any, payload: dict[str, Any]) -> dict[str, Any]:
-    """Worker: ``worker(payload)``, unless the suite has stopped (SIGTERM) or this worker is orphaned; then nothing
-    runs (the suite no longer reads the result, and nothing is recorded for a job that never started)."""
-    if _ORPHANED.is_set() or (_SUITE_STOP is not None and _SUITE_STOP.is_set()):
-        return {"ok": False, "error": "the suite stopped before this job started", "seconds": 0.0}
-    return worker(payload)
-
-
+# -- jobs run in the workers (freamer_rl.experiments.workers) ------------------------------------------------------
 def _error_line(err: BaseException) -> str:
     text = " ".join(str(err).split()) or "(no message)"
     return text if isinstance(err, FreamerError) else f"{type(err).__name__}: {text}"
@@ -422,53 +369,6 @@ def _finished_note(run: SuiteRun, out: dict[str, Any]) -> str:
     )
 
 
-@contextmanager
-def _worker_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
-    """The suite's spawned workers, ``jobs`` at most (started on demand, one torch thread each), shared by training
-    and evaluation; every exit stops them, and a SIGTERM is passed on to them (Ctrl-C reaches them itself)."""
-    token = catch_sigterm()
-    context = mp.get_context("spawn")
-    stop = context.Event()
-    pool = ProcessPoolExecutor(
-        max_workers=jobs, mp_context=context, initializer=_init_worker, initargs=(os.getpid(), stop)
-    )
-    try:
-        yield pool
-    except KeyboardInterrupt as err:
-        stop.set()  # the jobs already queued to a worker return at once (cancel_futures cannot reach those)
-        if isinstance(err, Terminated):
-            for process in list(getattr(pool, "_processes", {}).values()):
-                process.terminate()
-        raise
-    finally:  # every exit, an unexpected error included, stops the workers
-        restore_sigterm(token)
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _in_workers(
-    pool: ProcessPoolExecutor,
-    desc: str,
-    worker: Any,
-    payloads: list[dict],
-    weights: list[int | None],
-    item: str,
-    on_result: Any,
-) -> None:
-    """Run ``worker(payload)`` for every payload in ``pool`` with one overall progress (``weights``: as
-    :class:`OverallProgress`); ``on_result(index, future) -> (ok, note)`` reads each outcome as it finishes."""
-    progress = OverallProgress(desc, weights, item=item)
-    try:
-        futures = {pool.submit(_unless_stopped, worker, payload): i for i, payload in enumerate(payloads)}
-        for future in as_completed(futures):
-            index = futures[future]
-            ok, note = on_result(index, future)
-            if not ok:
-                progress.warn(f"{desc}: {note}")
-            progress.advance(index, note)
-    finally:
-        progress.close()
-
-
 def _execute(
     pool: ProcessPoolExecutor, suite: str, todo: list[SuiteRun], remaining: list[int | None]
 ) -> list[SuiteRun]:
@@ -495,7 +395,7 @@ def _execute(
         }
         for r in todo
     ]
-    _in_workers(pool, f"suite {suite}", _train_run, payloads, remaining, "runs", on_result)
+    in_workers(pool, f"suite {suite}", _train_run, payloads, remaining, "runs", on_result)
     return finished
 
 
@@ -620,7 +520,7 @@ def _evaluate_missing(
         (done if out["ok"] else failed).append(tag)
         return out["ok"], tag if out["ok"] else f"{tag} FAILED: {out['error']}"
 
-    _in_workers(
+    in_workers(
         pool,
         f"suite {suite.name} evaluation",
         evaluate_condition,
@@ -651,13 +551,13 @@ def run_suite(
     with _lock_results(root, field_name):
         trained, evaluated, eval_failed = [], [], []
         if not report_only:
-            with _worker_pool(jobs) as pool:  # workers start on demand: none when nothing is left to do
+            with worker_pool(jobs) as pool:  # workers start on demand: none when nothing is left to do
                 trained = _train_missing(pool, suite, root, runs, jobs)
                 if suite.evaluate.conditions:
                     try:
                         evaluated, eval_failed = _evaluate_missing(pool, suite, runs)
                     except BrokenProcessPool:  # a training worker died (killed, out of memory): fresh workers
-                        with _worker_pool(jobs) as fresh:
+                        with worker_pool(jobs) as fresh:
                             evaluated, eval_failed = _evaluate_missing(fresh, suite, runs)
         results = write_report(root, suite.name, list(runs))
         if suite.evaluate.conditions:
