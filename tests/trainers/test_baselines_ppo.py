@@ -7,9 +7,12 @@ import pytest
 import torch
 from torchrl.data import Bounded, Categorical, Composite
 
-from freamer_rl.errors import ConfigError, EnvSetupError
+from freamer_rl.errors import CheckpointError, ConfigError, EnvSetupError
+from freamer_rl.run.checkpoint import load_checkpoint
 from freamer_rl.trainers.baselines.config import NetworkConfig, PPOBaselineConfig
+from freamer_rl.trainers.baselines.impala import ImpalaTrainer
 from freamer_rl.trainers.baselines.networks import ObservationEncoder, build_actor_critic
+from freamer_rl.trainers.baselines.ppo_baseline import PPOBaselineTrainer
 from freamer_rl.trainers.registry import TRAINERS, load_config, resolve_checkpoint
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -184,3 +187,38 @@ def test_resume_refuses_another_trainers_checkpoint_and_legacy_files_go_to_fream
     del ckpt["trainer"]
     torch.save(ckpt, tmp_path / "legacy.pt")
     assert trainer_of_checkpoint(tmp_path / "legacy.pt") == "minigrid_ppo"
+
+
+_TINY = {
+    "ppo_baseline": (
+        "ppo_mlp_n2s4.yaml",
+        ["ppo.frames_per_batch=128", "ppo.minibatch_size=64", "ppo.epochs=1", "run.total_frames=256"],
+    ),
+    "impala": (
+        "impala_n2s4.yaml",
+        ["env.num_envs=2", "impala.frames_per_batch=64", "collector.num_collectors=1", "run.total_frames=128"],
+    ),
+}
+
+
+@pytest.mark.parametrize("trainer", sorted(_TINY))
+def test_init_from_transfers_a_baselines_weights_and_refuses_another_network(trainer, tmp_path):
+    name, tiny = _TINY[trainer]
+    recipe = ROOT / "recipes" / "baselines" / name
+    tiny = ["env.id=MiniGrid-Empty-5x5-v0", "network.hidden=16", "logging.progress_bar=false", *tiny]
+    TRAINERS[trainer].train(load_config(recipe, tiny), tmp_path / "a")
+    source = load_checkpoint(resolve_checkpoint(tmp_path / "a"))["model"]
+    cls = {"ppo_baseline": PPOBaselineTrainer, "impala": ImpalaTrainer}[trainer]
+    given = [*tiny, "env.id=MiniGrid-DoorKey-5x5-v0", f"run.init_from={tmp_path / 'a'}"]
+    stage = cls(load_config(recipe, given), tmp_path / "b")
+    for key, value in stage.net.state_dict().items():  # another env, the same network: every weight transferred
+        torch.testing.assert_close(value, source[key])
+    other = [*tiny, "network.hidden=32", f"run.init_from={tmp_path / 'a'}"]
+    with pytest.raises(CheckpointError, match=r"run.init_from: .* another network \(network.hidden: checkpoint 16"):
+        cls(load_config(recipe, other), tmp_path / "c")
+
+
+def test_dreamer_refuses_init_from_at_load(tmp_path):
+    recipe = ROOT / "recipes" / "baselines" / "dreamer_v3_n2s4.yaml"
+    with pytest.raises(ConfigError, match="run.init_from: the dreamer_v3 trainer cannot start from another run"):
+        load_config(recipe, [f"run.init_from={tmp_path}"])

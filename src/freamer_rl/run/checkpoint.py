@@ -421,3 +421,32 @@ def check_checkpoint_config(
     diffs = structural_differences(saved, current, structural, defaults)
     if diffs:
         raise CheckpointError(f"checkpoint {path} comes from another config ({'; '.join(diffs[:4])})")
+
+
+def read_transfer_source(
+    source: str | Path, current: dict, defaults: dict, sections: tuple[str, ...]
+) -> tuple[dict, Path]:
+    """``(model state, checkpoint file)`` of ``run.init_from``'s source (a run directory, whose ``latest`` checkpoint
+    is used, or a checkpoint file), after checking that its config's ``sections`` (those that shape the weights:
+    ``model`` for FreamerV1, ``network`` for the TorchRL baselines) equal ``current``'s; CheckpointError naming the
+    field otherwise. The env may differ as long as the weights fit."""
+    source = Path(source)
+    path = latest_checkpoint(source) if source.is_dir() else source
+    if path is None:
+        raise CheckpointError(f"run.init_from: {source} holds no checkpoint (checkpoints/latest is missing)")
+    if not path.is_file():
+        raise CheckpointError(f"run.init_from: no such checkpoint file: {path}")
+    ckpt = load_checkpoint(path)
+    saved = ckpt.get("config") if isinstance(ckpt.get("config"), dict) else None
+    missing = [s for s in sections if saved is None or not isinstance(saved.get(s), dict)]
+    if missing or not isinstance(ckpt.get("model"), dict):
+        raise CheckpointError(
+            f"run.init_from: checkpoint {path} holds no {', '.join(missing) or 'model'} section to transfer from "
+            "(a run of another trainer?)"
+        )
+    diffs = structural_differences(saved, current, sections, defaults)
+    if diffs:
+        raise CheckpointError(
+            f"run.init_from: checkpoint {path} has another {'/'.join(sections)} ({'; '.join(diffs[:4])})"
+        )
+    return ckpt["model"], path

@@ -36,7 +36,7 @@ from freamer_rl.config.loader import config_to_dict
 from freamer_rl.errors import ConfigError
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import FORMAT as CHECKPOINT_FORMAT
-from freamer_rl.run.checkpoint import load_checkpoint
+from freamer_rl.run.checkpoint import load_checkpoint, read_transfer_source
 from freamer_rl.run.collection import make_collector
 from freamer_rl.run.crafter_score import CrafterScore
 from freamer_rl.run.envs import make_batched_env
@@ -165,8 +165,32 @@ class RunLoop:
             self._lock.release()
             raise
 
+    #: config sections that shape the weights and must match ``run.init_from``'s checkpoint for a transfer; None: the
+    #: trainer cannot transfer, and ``run.init_from`` is refused
+    transfer_sections: tuple[str, ...] | None = None
+
+    def _load_weights(self, state: dict[str, Any], path: Path) -> None:
+        """Load a transferred model state (``run.init_from``); trainers with ``transfer_sections`` implement it."""
+        raise NotImplementedError
+
     def _after_open(self, ckpt_path: Path | None) -> None:
-        """Hook after a resume (``ckpt_path``) or a fresh start (``None``), before the run files are written."""
+        """Hook after a resume (``ckpt_path``) or a fresh start (``None``), before the run files are written: a fresh
+        start with ``run.init_from`` loads that run's weights (``transfer_sections`` must match); a resume keeps its
+        own. Subclasses that override it call it."""
+        source = getattr(self.cfg.run, "init_from", None)
+        if not source:
+            return
+        if ckpt_path is not None:
+            logger.info("resuming this run's own checkpoint: run.init_from=%s is not applied", source)
+            return
+        if self.transfer_sections is None:
+            raise ConfigError(
+                f"run.init_from: the {self.trainer_name} trainer cannot start from another run's weights; leave it unset"
+            )
+        current, defaults = config_to_dict(self.cfg), config_to_dict(type(self.cfg)())
+        state, path = read_transfer_source(source, current, defaults, self.transfer_sections)
+        self._load_weights(state, path)
+        logger.info("initialised the model from %s (run.init_from)", path)
 
     def _resume(self, ckpt: dict[str, Any]) -> None:
         path = self.life.checkpoint_path

@@ -42,7 +42,7 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 
 from freamer_rl.config.checks import Range
-from freamer_rl.config.loader import VALIDATORS, config_to_dict
+from freamer_rl.config.loader import VALIDATORS
 from freamer_rl.config.sections import (
     BASE_RANGES,
     BASE_RENAMED,
@@ -66,7 +66,7 @@ from freamer_rl.model.factory import FreamerModules, build_freamer
 from freamer_rl.model.losses import FreamerAuxLoss
 from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
-from freamer_rl.model.weights import load_model_state, transfer_weights
+from freamer_rl.model.weights import load_model_state
 from freamer_rl.run.corruption import corruption_transforms, eval_entries
 from freamer_rl.run.envs import check_env_writes, probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
@@ -235,17 +235,10 @@ class Trainer(RunLoop):
     def _compiling(self) -> bool:
         return self.cfg.model.compile
 
-    def _after_open(self, ckpt_path: Path | None) -> None:
-        if ckpt_path is not None:
-            if self.cfg.run.init_from:
-                logger.info(
-                    "resuming this run's own checkpoint: run.init_from=%s is not applied", self.cfg.run.init_from
-                )
-        elif self.cfg.run.init_from:
-            source = transfer_weights(
-                self.modules, self.cfg.run.init_from, config_to_dict(self.cfg), config_to_dict(FreamerConfig())
-            )
-            logger.info("initialised the model from %s (run.init_from)", source)
+    transfer_sections = ("model",)
+
+    def _load_weights(self, state: dict[str, Any], path: Path) -> None:
+        load_model_state(self.modules, state, path)
 
     def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
         saved_ogm = (ckpt["config"].get("ogm") or {}).get("mode", "none")

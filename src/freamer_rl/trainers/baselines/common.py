@@ -39,6 +39,7 @@ class ActorCriticRunLoop(RunLoop):
     ``_learn``."""
 
     structural = STRUCTURAL
+    transfer_sections = ("network",)  # run.init_from: the weights of a run with the same network section
 
     def __init__(self, cfg: Any, run_dir: str | Path) -> None:
         super().__init__(cfg, run_dir)
@@ -93,13 +94,16 @@ class ActorCriticRunLoop(RunLoop):
             "steps": self.step_stats.state_dict(),
         }
 
-    def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
+    def _load_weights(self, state: dict[str, Any], path: Path) -> None:
         try:
-            self.net.load_state_dict(ckpt["model"])
+            self.net.load_state_dict(state)
         except RuntimeError as err:
             raise CheckpointError(
                 f"checkpoint {path}: weights do not fit this network: {str(err).splitlines()[0][:200]}"
             ) from err
+
+    def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
+        self._load_weights(ckpt["model"], path)
         restore_optimizer(
             self.optimizer, ckpt["optimizer"], self.cfg.optim, int(ckpt["frames"]), self.cfg.run.total_frames
         )

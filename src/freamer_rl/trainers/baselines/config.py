@@ -313,6 +313,11 @@ def _check_dreamer_section(d: DreamerSection, num_envs: int) -> None:
 
 
 def validate_dreamer(cfg: DreamerConfig) -> None:
+    if cfg.run.init_from:
+        raise ConfigError(
+            "run.init_from: the dreamer_v3 trainer cannot start from another run's weights (its world model, actor "
+            "and critic are not transferred); leave it unset, or chain FreamerV1 / ppo_baseline / impala stages"
+        )
     """The shared checks, then the ``dreamer`` layout (the error names the field)."""
     check_base(cfg)
     _check_dreamer_section(cfg.dreamer, cfg.env.num_envs)

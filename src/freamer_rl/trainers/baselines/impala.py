@@ -111,6 +111,7 @@ class ImpalaTrainer(ActorCriticRunLoop):
         super()._load_model_state(ckpt, path)
 
     def _after_open(self, ckpt_path: Path | None) -> None:
+        super()._after_open(ckpt_path)
         self.stamp.module.version.fill_(self.batches)
 
     def vtrace(self, data: TensorDictBase) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
