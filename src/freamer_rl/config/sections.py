@@ -226,12 +226,16 @@ def check_corruption(entries: list[CorruptionConfig]) -> None:
     """Every ``env.corrupt`` entry's kind, level and phase (whether the key exists and fits the kind is checked when
     the env is built)."""
     for i, c in enumerate(entries):
-        where = f"env.corrupt[{i}]"
-        if not c.key:
-            raise ConfigError(f"{where}.key: name the observation key to corrupt (e.g. pixels, grid, mission_tokens)")
-        check_corruption_kind(c.kind, c.level, where)
-        if c.when not in CORRUPTION_WHEN:
-            raise ConfigError(f"{where}.when: expected train, eval or both, got {c.when!r}")
+        check_corruption_entry(c, f"env.corrupt[{i}]")
+
+
+def check_corruption_entry(c: CorruptionConfig, where: str) -> None:
+    """One corruption entry's key, kind, level and phase; ``where`` names it in the error (``env.corrupt[0]``)."""
+    if not c.key:
+        raise ConfigError(f"{where}.key: name the observation key to corrupt (e.g. pixels, grid, mission_tokens)")
+    check_corruption_kind(c.kind, c.level, where)
+    if c.when not in CORRUPTION_WHEN:
+        raise ConfigError(f"{where}.when: expected train, eval or both, got {c.when!r}")
 
 
 def check_ppo_layout(cfg: Any) -> None:

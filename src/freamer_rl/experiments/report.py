@@ -43,6 +43,7 @@ __all__ = [
     "first_reaching",
     "mean_std",
     "plot_bands",
+    "read_json",
     "read_run",
     "run_status",
     "write_report",
@@ -168,7 +169,8 @@ class RunRecord:
     stages: list[str] | None = None  # a chain entry's run: its stages' folder names in order; None: one recipe
 
 
-def _read_json(path: Path) -> dict | None:
+def read_json(path: Path) -> dict | None:
+    """A JSON object file, or None when it is missing, unreadable or not an object."""
     try:
         data = json.loads(path.read_text())
     except (OSError, ValueError):
@@ -190,7 +192,7 @@ def _stage_views(run_dir: Path, stages: list[str]) -> list[tuple[dict, list[dict
     episodes so far."""
     views = []
     for name in stages:
-        summary = _read_json(run_dir / name / "summary.json") or {}
+        summary = read_json(run_dir / name / "summary.json") or {}
         rows = _read_progress(run_dir / name / "progress.csv")
         last = rows[-1] if rows else {}
         frames = max(
@@ -224,8 +226,8 @@ def _chain_view(rec: RunRecord) -> tuple[dict, list[dict]]:
 def run_status(run_dir: Path, target_frames: int | None, stages: list[str] | None = None) -> tuple[str, int]:
     """``(status, frames)``: ``done`` (finished for this budget), ``failed`` (last attempt), ``partial``, ``new``.
     ``stages``: a chain run's stage folders (frames are counted across them)."""
-    summary = (_read_json(run_dir / "summary.json") or {}) if stages is None else {}
-    done = _read_json(run_dir / DONE_NAME)
+    summary = (read_json(run_dir / "summary.json") or {}) if stages is None else {}
+    done = read_json(run_dir / DONE_NAME)
     frames = int(_as_float(summary.get("frames")) if summary.get("frames") is not None else 0)
     if stages is not None:
         frames = sum(v[2] for v in _stage_views(run_dir, stages))
@@ -265,7 +267,7 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
         summary, rows = _chain_view(rec)
         summary = summary if status == "done" else {}
     else:
-        summary = (_read_json(rec.run_dir / "summary.json") or {}) if status == "done" else {}
+        summary = (read_json(rec.run_dir / "summary.json") or {}) if status == "done" else {}
         rows = _read_progress(rec.run_dir / "progress.csv")
     last = rows[-1] if rows else {}
     error = rec.error if rec.error or status != "failed" else failed_line(rec.run_dir)

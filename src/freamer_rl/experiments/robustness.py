@@ -38,8 +38,9 @@ from typing import Any
 import numpy as np
 
 from freamer_rl.config.checks import run_name_problem
-from freamer_rl.config.sections import CORRUPTION_WHEN, CorruptionConfig, check_corruption_kind
+from freamer_rl.config.sections import CorruptionConfig, check_corruption_entry
 from freamer_rl.errors import ConfigError, FreamerError
+from freamer_rl.experiments.report import read_json
 from freamer_rl.experiments.stats import iqm_ci, probability_of_improvement
 from freamer_rl.run.checkpoint import atomic_write_text, read_checkpoint
 from freamer_rl.run.rundir import write_rows_csv
@@ -106,12 +107,7 @@ def _check_condition(c: EvalCondition, where: str) -> None:
     if problem := run_name_problem(c.label):
         raise ConfigError(f"{where}.label: {problem}")
     for j, e in enumerate(c.corrupt):
-        at = f"{where}.corrupt[{j}]"
-        if not e.key:
-            raise ConfigError(f"{at}.key: name the observation key to corrupt (e.g. grid, mission_tokens)")
-        check_corruption_kind(e.kind, e.level, at)
-        if e.when not in CORRUPTION_WHEN:
-            raise ConfigError(f"{at}.when: expected train, eval or both, got {e.when!r}")
+        check_corruption_entry(e, f"{where}.corrupt[{j}]")
     if c.group is not None and not c.group.strip():
         raise ConfigError(f"{where}.group: expected a name, got an empty string")
     if c.level is not None and not math.isfinite(c.level):
@@ -173,17 +169,9 @@ def checkpoint_frames(run_dir: Path) -> int | None:
     return None if frames is None else int(frames)
 
 
-def _read_json(path: Path) -> dict | None:
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
 def eval_state(path: Path, frames: int | None) -> str:
     """``done`` (a result for the checkpoint of ``frames``), ``stale`` (for another checkpoint), ``failed``, ``new``."""
-    data = _read_json(path)
+    data = read_json(path)
     if data is None:
         return "new"
     if data.get("error"):
@@ -253,7 +241,7 @@ def robustness_rows(results: list[dict], cfg: EvaluateConfig) -> list[dict[str, 
     clean = clean_condition(cfg)
     rows = []
     for r in (r for r in results if r["status"] == "done"):
-        evals = {c.label: _read_json(eval_path(Path(r["run_dir"]), c.label)) for c in cfg.conditions}
+        evals = {c.label: read_json(eval_path(Path(r["run_dir"]), c.label)) for c in cfg.conditions}
         base = _number((evals[clean.label] or {}).get(cfg.metric))
         for c in cfg.conditions:
             data = evals[c.label] or {}
