@@ -388,10 +388,12 @@ def robustness_markdown(name: str, cfg: EvaluateConfig, arms: list[dict], pairs:
     if any(r["extras"] for r in rows):
         lines += [
             "",
-            "gates_<group>.png: each modality's gate sigma(alpha) and refiner displacement (FreamerV1) against the "
-            "level, mean across seeds. The gate is a trained weight, so under evaluation-only corruption it stays "
-            "where training left it; the displacement is the per-step response. Whether a gate closes on a "
-            "modality corrupted during training shows across entries trained with env.corrupt.",
+            "gates_<group>.png: per modality, against the level (mean across seeds; FreamerV1): the gate "
+            "sigma(alpha), the score-based input gate and mixing weight (model.flow.reliability runs) and the "
+            "refiner displacement. sigma(alpha) is a trained weight, so under evaluation-only corruption it stays "
+            "where training left it; the input gate, the weight and the displacement respond per step. Whether a "
+            "trained gate closes on a modality corrupted during training shows across entries trained with "
+            "env.corrupt.",
         ]
     missing = [r for r in rows if r["error"]]
     if missing:
