@@ -1,6 +1,7 @@
 """TorchRL PPO baselines (trainer ``ppo_baseline``): networks over batch shapes, config validation, a real learning
 run, and the Crafter PPO-CNN through the shared run loop."""
 
+import csv
 from pathlib import Path
 
 import pytest
@@ -222,3 +223,20 @@ def test_dreamer_refuses_init_from_at_load(tmp_path):
     recipe = ROOT / "recipes" / "baselines" / "dreamer_v3_n2s4.yaml"
     with pytest.raises(ConfigError, match="run.init_from: the dreamer_v3 trainer cannot start from another run"):
         load_config(recipe, [f"run.init_from={tmp_path}"])
+
+
+def test_ppo_baseline_takes_freamers_shaping(tmp_path):
+    recipe = ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml"
+    tiny = [
+        "env.id=MiniGrid-DoorKey-5x5-v0",
+        "network.hidden=16",
+        "logging.progress_bar=false",
+        *_TINY["ppo_baseline"][1],
+    ]
+    shaped = [*tiny, "shaping.novelty.weight=0.1", "shaping.language.weight=0.2", "shaping.time_penalty=0.02"]
+    TRAINERS["ppo_baseline"].train(load_config(recipe, shaped), tmp_path / "run")
+    rows = list(csv.DictReader((tmp_path / "run" / "progress.csv").open()))
+    assert {"bonus_novelty", "bonus_lang", "time_penalty"} <= set(rows[0])
+    assert float(rows[0]["bonus_novelty"]) > 0  # first visits pay the bonus
+    with pytest.raises(ConfigError, match="shaping.curiosity: R_intrinsic reads the fused embedding"):
+        load_config(recipe, [*tiny, "shaping.curiosity=0.2"])

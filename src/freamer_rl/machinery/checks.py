@@ -6,12 +6,11 @@ from typing import Any
 
 from freamer_rl.errors import ConfigError
 
-__all__ = ["check_machinery"]
+__all__ = ["check_machinery", "check_shaping"]
 
 
-def check_machinery(cfg: Any) -> None:
-    """Choices of the training machinery (``shaping``, ``ogm``) and what they need from the model: parser kind,
-    OGM-GE mode, the modalities R_VL compares, hashed novelty keys."""
+def check_shaping(cfg: Any) -> None:
+    """The ``shaping`` choices every trainer with that section shares: parser kind, its weights, novelty keys."""
     lang = cfg.shaping.language
     if lang.parser not in ("regex", "llm"):
         raise ConfigError(f"shaping.language.parser: expected 'regex' or 'llm', got {lang.parser!r}")
@@ -20,6 +19,14 @@ def check_machinery(cfg: Any) -> None:
             "shaping.language.llm_path: parser 'llm' needs the local directory of the model weights "
             "(e.g. Qwen2.5-1.5B-Instruct), or use shaping.language.parser=regex"
         )
+    if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
+        raise ConfigError("shaping.novelty.keys: got [], give at least one observation entry to hash")
+
+
+def check_machinery(cfg: Any) -> None:
+    """Choices of FreamerV1's training machinery (``shaping``, ``ogm``) and what they need from the model: parser
+    kind, OGM-GE mode, the modalities R_VL compares, hashed novelty keys."""
+    check_shaping(cfg)
     if cfg.ogm.mode not in ("none", "A", "B"):
         raise ConfigError(f"ogm.mode: expected none, A or B, got {cfg.ogm.mode!r}")
     if cfg.ogm.mode != "none" and cfg.model.flow.placement != "pre":
@@ -38,5 +45,3 @@ def check_machinery(cfg: Any) -> None:
             f"shaping.vision_language: got {cfg.shaping.vision_language}, but R_VL needs the language "
             f"modality and vision or state in model.modalities {cfg.model.modalities}; set it to 0"
         )
-    if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
-        raise ConfigError("shaping.novelty.keys: got [], give at least one observation entry to hash")

@@ -29,6 +29,9 @@ from freamer_rl.config.sections import (
     check_ppo_layout,
 )
 from freamer_rl.errors import ConfigError
+from freamer_rl.machinery.checks import check_shaping
+from freamer_rl.machinery.config import MACHINERY_RANGES, ShapingConfig
+from freamer_rl.run.envs import check_env_writes
 
 __all__ = [
     "NETWORK_KINDS",
@@ -108,14 +111,29 @@ def check_network(net: NetworkConfig, kinds: tuple[str, ...] = FEEDFORWARD_KINDS
         )
 
 
+#: the shaping terms that need FreamerV1's embeddings (the baselines have none): refused by the baselines
+_EMBEDDING_TERMS = {
+    "vision_language": "R_VL compares refined embeddings",
+    "curiosity": "R_intrinsic reads the fused embedding",
+}
+
+
 @dataclass
 class PPOBaselineConfig(BaseConfig):
-    """``trainer: ppo_baseline``: the shared base, ``ppo`` (FreamerV1's PPO section) and ``network``."""
+    """``trainer: ppo_baseline``: the shared base, ``ppo`` (FreamerV1's PPO section), ``network`` and ``shaping``
+    (FreamerV1's section: the language reward, novelty bonus, time penalty and adaptive decay; not the two terms that
+    read FreamerV1's embeddings), so a comparison can give both sides the same shaping."""
 
     ppo: PPOConfig = field(default_factory=PPOConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
+    shaping: ShapingConfig = field(default_factory=ShapingConfig)
 
-    RANGES: ClassVar[dict[str, Range]] = {**BASE_RANGES, **PPO_RANGES, **NETWORK_RANGES}
+    RANGES: ClassVar[dict[str, Range]] = {
+        **BASE_RANGES,
+        **PPO_RANGES,
+        **NETWORK_RANGES,
+        **{k: v for k, v in MACHINERY_RANGES.items() if k.startswith("shaping.")},
+    }
 
     def reads_observation(self, key: str) -> bool:
         return key in self.network.observation_keys
@@ -125,6 +143,14 @@ def validate_ppo_baseline(cfg: PPOBaselineConfig) -> None:
     check_base(cfg)
     check_ppo_layout(cfg)  # ppo.sequence_length tiles the [envs, T] batch: the *_lstm kinds train on sequences
     check_network(cfg.network, NETWORK_KINDS)
+    check_shaping(cfg)
+    for name, why in _EMBEDDING_TERMS.items():
+        if getattr(cfg.shaping, name):
+            raise ConfigError(
+                f"shaping.{name}: {why}, which the ppo_baseline trainer does not have; set it to 0 (the language "
+                "reward, novelty bonus, time penalty and adaptive decay work for every trainer)"
+            )
+    check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
 
 
 VALIDATORS[PPOBaselineConfig] = validate_ppo_baseline

@@ -9,7 +9,9 @@ recurrent mode over the ``[envs, T]`` batch from the LSTM states stored while co
 whole ``ppo.sequence_length`` sequences (:func:`sequence_minibatches`, shuffled as sequences) that the LSTM runs in
 recurrent mode from the stored state at ``t = 0``, reset wherever ``is_init``. The ``ppo`` section's values apply
 (lr, clip, entropy, GAE, minibatch, epochs, grad-norm clip, and ``sequence_length`` for the recurrent kinds); the
-FreamerV1-only losses do not. MiniGrid renders ``pixels`` only when ``network.observation_keys`` reads them.
+FreamerV1-only losses do not. MiniGrid renders ``pixels`` only when ``network.observation_keys`` reads them. The
+``shaping`` section works as FreamerV1's (:class:`~freamer_rl.machinery.shaping.RewardShaper`: language reward,
+novelty bonus, time penalty, adaptive decay), so a comparison can give both sides the same shaping.
 
     freamer-rl train recipes/baselines/ppo_mlp_n2s4.yaml run.seed=1
     freamer-rl train recipes/baselines/ppo_lstm_n2s4.yaml run.seed=1
@@ -27,6 +29,7 @@ from tensordict import TensorDictBase
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 
+from freamer_rl.machinery.shaping import SHAPED_REWARD, RewardShaper, env_transforms
 from freamer_rl.run.loop import resolve_run_dir
 from freamer_rl.run.sequences import split_sequences
 from freamer_rl.trainers.baselines.common import (
@@ -81,7 +84,22 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         self.gae = GAE(
             gamma=p.gamma, lmbda=p.gae_lambda, value_network=self.net.get_value_operator(), average_gae=False, **extra
         )
+        # the shaping FreamerV1 gets (language reward, novelty, time penalty, adaptive decay): GAE then reads
+        # ("next", "shaped_reward"); the env reward, and success judged on it, stay as they are
+        self.shaper = RewardShaper(cfg, [], 0, 0, self.device)
+        if self.shaper.active:
+            self.gae.set_keys(reward=SHAPED_REWARD)
         self._start(resume)
+
+    def _env_transforms(self) -> list:
+        return [*env_transforms(self.cfg), *super()._env_transforms()]
+
+    def _model_state(self) -> dict[str, Any]:
+        return {**super()._model_state(), "shaping": self.shaper.state_dict()}
+
+    def _load_model_state(self, ckpt: dict[str, Any], path: Path) -> None:
+        super()._load_model_state(ckpt, path)
+        self.shaper.load_state_dict(ckpt.get("shaping", {}))
 
     @property
     def frames_per_batch(self) -> int:
@@ -90,13 +108,16 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
     def _learn(self, data: TensorDictBase) -> dict[str, float]:
         p = self.cfg.ppo
         self._current_lr()
+        shaping = self.shaper(data, self.stats.success_rate) if self.shaper.active else {}
         with torch.no_grad(), set_recurrent_mode(self.recurrent):
             data = self.gae(data)
         if self.recurrent:
-            return self._minibatch_steps(sequence_minibatches(data, p.sequence_length, p.minibatch_size, p.epochs))
-        flat = data.exclude("next").reshape(-1)
-        epochs = (torch.randperm(flat.numel(), device=flat.device).split(p.minibatch_size) for _ in range(p.epochs))
-        return self._minibatch_steps(flat[idx] for epoch in epochs for idx in epoch)
+            minibatches = sequence_minibatches(data, p.sequence_length, p.minibatch_size, p.epochs)
+        else:
+            flat = data.exclude("next").reshape(-1)
+            epochs = (torch.randperm(flat.numel(), device=flat.device).split(p.minibatch_size) for _ in range(p.epochs))
+            minibatches = (flat[idx] for epoch in epochs for idx in epoch)
+        return {**shaping, **self._minibatch_steps(minibatches)}
 
 
 def train(cfg: PPOBaselineConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
