@@ -42,6 +42,7 @@ from freamer_rl.config.sections import CorruptionConfig, check_corruption_entry
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.report import read_json
 from freamer_rl.experiments.stats import iqm_ci, probability_of_improvement
+from freamer_rl.experiments.workers import error_line
 from freamer_rl.run.checkpoint import atomic_write_text, read_checkpoint
 from freamer_rl.run.rundir import write_rows_csv
 from freamer_rl.trainers.registry import evaluate_any, resolve_checkpoint
@@ -215,8 +216,7 @@ def evaluate_condition(job: dict[str, Any]) -> dict[str, Any]:
         result = evaluate_any(run_dir, corrupt=corrupt, **job["options"])
         out = {**head, **result, "checkpoint_frames": frames, "seconds": round(time.perf_counter() - t0, 1)}
     except Exception as err:  # recorded; the other evaluations go on
-        text = " ".join(str(err).split()) or "(no message)"
-        error = text if isinstance(err, FreamerError) else f"{type(err).__name__}: {text}"
+        error = error_line(err)
         if not isinstance(err, FreamerError):
             logger.exception("evaluation %s failed", job["tag"])
         out = {**head, "error": error}

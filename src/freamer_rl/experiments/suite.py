@@ -72,7 +72,7 @@ from freamer_rl.experiments.robustness import (
     evaluate_condition,
     write_robustness,
 )
-from freamer_rl.experiments.workers import in_workers, worker_pool
+from freamer_rl.experiments.workers import error_line, in_workers, worker_pool
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import RunDirLock
 from freamer_rl.trainers.registry import get_trainer, load_recipe
@@ -308,11 +308,6 @@ def describe(runs: list[SuiteRun]) -> list[dict[str, Any]]:
 
 
 # -- jobs run in the workers (freamer_rl.experiments.workers) ------------------------------------------------------
-def _error_line(err: BaseException) -> str:
-    text = " ".join(str(err).split()) or "(no message)"
-    return text if isinstance(err, FreamerError) else f"{type(err).__name__}: {text}"
-
-
 def _train_run(job: dict[str, Any]) -> dict[str, Any]:
     """Worker: train one run through the trainer registry, or a chain entry's run through ``run_chain`` (resuming),
     then write ``done.json`` or ``failed.txt``."""
@@ -333,7 +328,7 @@ def _train_run(job: dict[str, Any]) -> dict[str, Any]:
     except Exception as err:  # recorded; the suite goes on with the other runs
         if not isinstance(err, FreamerError):
             logger.exception("run %s failed", job["tag"])
-        error = _error_line(err)
+        error = error_line(err)
         atomic_write_text(run_dir / FAILED_NAME, error + "\n")
         return {"ok": False, "error": error, "seconds": time.perf_counter() - t0}
     done = {
@@ -353,7 +348,7 @@ def _outcome(future: Any, run: SuiteRun) -> dict[str, Any]:
     try:
         return future.result()
     except Exception as err:  # noqa: BLE001 -- BrokenProcessPool: the worker died (killed, out of memory)
-        error = _error_line(err)
+        error = error_line(err)
         run.run_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(run.run_dir / FAILED_NAME, error + "\n")
         return {"ok": False, "error": error, "seconds": 0.0}
@@ -513,7 +508,7 @@ def _evaluate_missing(
         try:
             out = future.result()
         except Exception as err:  # noqa: BLE001 -- BrokenProcessPool: the worker died; recorded like a failure
-            out = {"ok": False, "error": _error_line(err)}
+            out = {"ok": False, "error": error_line(err)}
             path = Path(todo[index]["path"])
             path.parent.mkdir(parents=True, exist_ok=True)
             atomic_write_text(path, json.dumps({"condition": todo[index]["condition"], "error": out["error"]}) + "\n")

@@ -24,12 +24,13 @@ from typing import Any
 
 import torch
 
+from freamer_rl.errors import FreamerError
 from freamer_rl.experiments.progress import OverallProgress
 from freamer_rl.run.rundir import Terminated, catch_sigterm, restore_sigterm
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["in_workers", "worker_pool"]
+__all__ = ["error_line", "in_workers", "worker_pool"]
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _ORPHAN_GRACE_S = 60.0  # an orphaned worker's time to checkpoint after SIGTERM before it exits regardless
@@ -119,3 +120,9 @@ def in_workers(
             progress.advance(index, note)
     finally:
         progress.close()
+
+
+def error_line(err: BaseException) -> str:
+    """One line for a job's failure: the message of a FreamerError, else ``Type: message``."""
+    text = " ".join(str(err).split()) or "(no message)"
+    return text if isinstance(err, FreamerError) else f"{type(err).__name__}: {text}"

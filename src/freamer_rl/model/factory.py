@@ -118,10 +118,11 @@ class FreamerModules:
         ``fm_displacement_<m>`` (:meth:`displacement`) and, for refiners with score-based reliability,
         ``gate_input_<m>`` (the input-dependent gate) and ``weight_<m>`` (the mixing weight)."""
         out = {f"fm_displacement_{m}": v for m, v in self.displacement(td).items()}
+        keys = self.refiner_keys()
         for m, refiner in self.refiners.items():
-            if getattr(refiner, "reliability", "off") != "off":
+            if refiner.reliability != "off":
                 with torch.no_grad():
-                    gate, weight = refiner.reliability_terms(td.get(self.refiner_keys()[m][0]))
+                    gate, weight = refiner.reliability_terms(td.get(keys[m][0]))
                 out[f"gate_input_{m}"], out[f"weight_{m}"] = gate.mean(), weight.mean()
         return out
 
