@@ -14,14 +14,15 @@ taken round by round between measurements a few seconds apart.
 What is timed, per batch of ``ppo.frames_per_batch`` frames (one warm-up batch first, then ``--batches`` K):
 
 * FreamerV1: ``Trainer(cfg, tmp_dir, resume=False)`` with the recipe + ``run.threads``, ``env.num_envs`` (+ any
-  positional overrides); collection = the time ``next()`` on ``trainer._make_collector(...)``'s iterator takes to
-  return the batch; update = ``trainer._compute_advantage`` (the step-mode value pass on root and next states, then
-  GAE) + ``trainer._update`` (the PPO epochs). ``collector.update_policy_weights_()`` and the episode statistics are
+  positional overrides); collection = the time ``next()`` on ``trainer.make_collector(...)``'s iterator takes to
+  return the batch; update = ``trainer.compute_advantage`` (the step-mode value pass on root and next states, then
+  GAE) + ``trainer.update`` (the PPO epochs). These public seams are newer than 411f9a7: for an older tree the
+  benchmark calls the private methods they wrap (``_make_collector``, ``_compute_advantage``, ``_update``). ``collector.update_policy_weights_()`` and the episode statistics are
   outside both. For commits whose adapters are the top-level package ``envs`` (before they were installed as
   ``freamer_rl_envs``), ``env_registry.get_env_factory`` is patched to return that tree's ``envs.minigrid`` factory.
 * PPO-MLP: ``PPOBaselineTrainer`` of ``recipes/baselines/ppo_mlp_n2s4.yaml`` (``trainer: ppo_baseline``) with the
   FreamerV1 recipe's ``env.id`` and ``ppo.frames_per_batch``, timed the same way: collection = ``next()`` on its
-  collector, update = ``trainer._learn`` (GAE with the value network, then the PPO epochs). It always uses one env
+  collector, update = ``trainer.learn`` (GAE with the value network, then the PPO epochs). It always uses one env
   (that is the baseline), so ``env.num_envs`` does not change it; it is rerun for every configuration only so that
   every row has a same-load baseline.
 
@@ -111,6 +112,12 @@ def _patch_legacy_adapters(tree: Path) -> bool:
     return True
 
 
+def _seam(trainer, public: str, private: str):
+    """``trainer``'s public seam, or the private method it wraps on an older tree (411f9a7 has no public seams)."""
+    fn = getattr(trainer, public, None)
+    return fn if callable(fn) else getattr(trainer, private)
+
+
 def _time_freamer(spec: dict) -> dict:
     import torch
 
@@ -132,16 +139,18 @@ def _time_freamer(spec: dict) -> dict:
     try:
         trainer = Trainer(cfg, run_dir / "run", resume=False)
         torch.set_num_threads(spec["threads"])
-        collector = trainer._make_collector((warmup + k) * fpb)
+        collector = _seam(trainer, "make_collector", "_make_collector")((warmup + k) * fpb)
+        compute_advantage = _seam(trainer, "compute_advantage", "_compute_advantage")
+        update_step = _seam(trainer, "update", "_update")
         it = iter(collector)
         collect, advantage, update, frames = [], [], [], 0
         for i in range(warmup + k):
             t0 = time.perf_counter()
             data = next(it)
             t1 = time.perf_counter()
-            data = trainer._compute_advantage(data)
+            data = compute_advantage(data)
             t2 = time.perf_counter()
-            trainer._update(data)
+            update_step(data)
             t3 = time.perf_counter()
             trainer.frames += data.numel()
             collector.update_policy_weights_()
@@ -162,7 +171,7 @@ def _time_freamer(spec: dict) -> dict:
 
 def _time_baseline(spec: dict) -> dict:
     """TorchRL's PPO-MLP (``trainer: ppo_baseline``, :data:`BASELINE_RECIPE`) timed like FreamerV1: collection =
-    ``next()`` on its collector, update = ``_learn`` (GAE with the value network, then the PPO epochs)."""
+    ``next()`` on its collector, update = ``learn`` (GAE with the value network, then the PPO epochs)."""
     import torch
 
     torch.set_num_threads(spec["threads"])
@@ -175,14 +184,14 @@ def _time_baseline(spec: dict) -> dict:
     try:
         trainer = PPOBaselineTrainer(cfg, run_dir / "run", resume=False)
         torch.set_num_threads(spec["threads"])
-        collector = trainer._make_collector((warmup + k) * cfg.ppo.frames_per_batch)
+        collector = trainer.make_collector((warmup + k) * cfg.ppo.frames_per_batch)
         it = iter(collector)
         collect, update, frames = [], [], 0
         for i in range(warmup + k):
             t0 = time.perf_counter()
             data = next(it)
             t1 = time.perf_counter()
-            trainer._learn(data)
+            trainer.learn(data)
             t2 = time.perf_counter()
             trainer.frames += data.numel()
             collector.update_policy_weights_()

@@ -87,6 +87,8 @@ class LoggingConfig:
     log_every_batches: int = 1
     checkpoint_every_frames: int = 20_000
     success_window: int = 100
+    # a return level (e.g. CartPole's 475) whose first reaching by the windowed mean return the summary records
+    return_target: float | None = None
     progress_bar: bool = True
 
 

@@ -42,6 +42,7 @@ from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.folders import prepare_output_folder
 from freamer_rl.experiments.progress import OverallProgress
+from freamer_rl.run.metrics import SUCCESS_LEVELS
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
 logger = logging.getLogger(__name__)
@@ -220,24 +221,33 @@ def run_chain(
                     progress.advance(todo.index(i), f"stage {stage.name} done: {int(summary['frames']):,} frames")
             else:
                 logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
+            rows.append(_stage_row(stage.name, summary, total, run_dir))
             total += int(summary["frames"])
-            rows.append(
-                {
-                    "stage": stage.name,
-                    "env": summary.get("env"),
-                    "frames": summary["frames"],
-                    "chain_frames": total,
-                    "episodes": summary.get("episodes"),
-                    "final_success_rate": summary.get("final_success_rate"),
-                    "frames_to_95": summary.get("frames_to_95"),
-                    "run_dir": str(run_dir),
-                }
-            )
     finally:
         if progress is not None:
             progress.close()
     _write_summary(root, cfg, rows)
     return rows
+
+
+def _stage_row(name: str, summary: dict[str, Any], frames_before: int, run_dir: Path) -> dict[str, Any]:
+    """One stage of ``chain_summary.json``: its own frames to 80% / 95% (the exact-episode definition of
+    :class:`~freamer_rl.run.metrics.EpisodeStats`) and the same counted across the chain (the earlier stages' frames
+    added)."""
+    row = {
+        "stage": name,
+        "env": summary.get("env"),
+        "frames": summary["frames"],
+        "chain_frames": frames_before + int(summary["frames"]),
+        "episodes": summary.get("episodes"),
+        "final_success_rate": summary.get("final_success_rate"),
+    }
+    for level in SUCCESS_LEVELS:
+        key = f"frames_to_{round(100 * level)}"
+        row[key] = summary.get(key)
+        row[f"chain_{key}"] = None if row[key] is None else frames_before + int(row[key])
+    row["run_dir"] = str(run_dir)
+    return row
 
 
 def _stage_frames(recipe: Path, given: list[str]) -> int | None:
@@ -257,14 +267,21 @@ def _write_summary(root: Path, cfg: ChainConfig, rows: list[dict[str, Any]]) -> 
     lines = [
         f"# Chain {cfg.name} (seed {cfg.seed})",
         "",
-        "| stage | env | frames | frames in the chain | episodes | final success | frames to 95% |",
-        "|---|---|---:|---:|---:|---:|---:|",
+        "Frames to X%: the exact episode (and its frame) at which the trailing 100-episode success rate first reached X,"
+        " within the stage and (in the chain) counted from the chain's start.",
+        "",
+        "| stage | env | frames | frames in the chain | episodes | final success | frames to 80% | frames to 95% "
+        "| frames to 80% in the chain | frames to 95% in the chain |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
         success = "" if r["final_success_rate"] is None else f"{r['final_success_rate']:.3f}"
-        to95 = "" if r["frames_to_95"] is None else f"{r['frames_to_95']:,}"
+        to = [
+            "" if r.get(k) is None else f"{r[k]:,}"
+            for k in ("frames_to_80", "frames_to_95", "chain_frames_to_80", "chain_frames_to_95")
+        ]
         lines.append(
             f"| {r['stage']} | {r['env']} | {r['frames']:,} | {r['chain_frames']:,} | {r['episodes']} | "
-            f"{success} | {to95} |"
+            f"{success} | " + " | ".join(to) + " |"
         )
     (root / "chain_summary.md").write_text("\n".join(lines) + "\n")

@@ -8,7 +8,7 @@ band). Runs whose ``summary.json`` holds the health trainer's evaluation (:data:
 Table 15 to ``summary.md``: per label, mean +- sample std across seeds.
 
 A chain entry's run (:attr:`RunRecord.stages` set) holds one folder per stage; its row counts frames, episodes,
-wall time and frames / episodes to 95% across the stages (the earlier stages' totals plus the last stage's), takes
+wall time and frames / episodes to 80% and 95% across the stages (the earlier stages' totals plus the last stage's), takes
 its final metrics from the last stage, and its curve is the last stage's with frames and episodes shifted by the
 earlier stages'. ``summary.md`` marks its label ``(chain)``.
 """
@@ -29,6 +29,7 @@ import numpy as np
 
 from freamer_rl.experiments.stats import iqm_ci
 from freamer_rl.run.checkpoint import atomic_write_text
+from freamer_rl.run.metrics import SUCCESS_LEVELS
 from freamer_rl.run.rundir import write_rows_csv
 
 logger = logging.getLogger(__name__)
@@ -40,7 +41,6 @@ __all__ = [
     "PLOT_METRICS",
     "RunRecord",
     "failed_line",
-    "first_reaching",
     "mean_std",
     "plot_bands",
     "read_json",
@@ -54,6 +54,11 @@ FAILED_NAME = "failed.txt"
 #: progress.csv columns copied into curves.csv (those a run has); the last three are plotted where present
 CURVE_KEYS = ("episodes", "success_rate", "return_mean", "crafter_score")
 PLOT_METRICS = ("success_rate", "return_mean", "crafter_score")
+#: summary.json's frames / episodes to each of SUCCESS_LEVELS (run.metrics.EpisodeStats: the exact episode at which the
+#: trailing 100-episode success rate first reaches the level), the only definition the reports use
+LEVEL_KEYS = tuple(f"{kind}_to_{round(100 * lv)}" for lv in SUCCESS_LEVELS for kind in ("frames", "episodes"))
+#: the same for the windowed mean return reaching ``logging.return_target`` (runs that set one)
+RETURN_KEYS = ("return_target", "frames_to_return", "episodes_to_return")
 #: final metrics: (runs.csv column, summary.json key, progress.csv column)
 FINAL_METRICS = (
     ("success_rate", "final_success_rate", "success_rate"),
@@ -72,15 +77,6 @@ HEALTH_METRICS = (
 # -- helpers -----------------------------------------------------------------------------------------------------
 def _missing(v: Any) -> bool:
     return v is None or (isinstance(v, float) and math.isnan(v))
-
-
-def first_reaching(rows: list[dict], key: str, target: float) -> tuple[int | None, int | None]:
-    """``(frames, episodes)`` of the first row whose windowed ``key`` is >= ``target``, or ``(None, None)``."""
-    for r in rows:
-        v = r.get(key)
-        if not _missing(v) and v >= target:
-            return r["frames"], r.get("episodes")
-    return None, None
 
 
 def mean_std(values: list, empty: str = "n/a") -> str:
@@ -213,8 +209,10 @@ def _chain_view(rec: RunRecord) -> tuple[dict, list[dict]]:
     last, rows, _, _ = views[-1]
     summary = {k: v for k, v in last.items() if k in ("final_success_rate", "final_return_mean", "crafter_score")}
     summary["episodes"] = episodes_before + views[-1][3]
-    for key, before in (("frames_to_95", frames_before), ("episodes_to_95", episodes_before)):
-        summary[key] = None if _missing(last.get(key)) else before + int(last[key])
+    for key in LEVEL_KEYS:
+        if key in last:
+            before = frames_before if key.startswith("frames") else episodes_before
+            summary[key] = None if _missing(last[key]) else before + int(last[key])
     walls = [_as_float(v[0].get("wall_time_s")) for v in views]
     if not any(math.isnan(w) for w in walls) and sum(walls) > 0:
         summary["wall_time_s"] = sum(walls)
@@ -281,8 +279,10 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
     }
     for col, skey, pkey in FINAL_METRICS:
         out[col] = _final(summary, last, skey, pkey)
-    for key in ("frames_to_95", "episodes_to_95"):
+    for key in (*LEVEL_KEYS, *RETURN_KEYS):
         out[key] = summary.get(key)
+    # a summary.json older than a level's record (frames_to_80 came later) does not know it: "n/a", not "not reached"
+    out["levels_unknown"] = sorted(k for k in LEVEL_KEYS if summary and k not in summary)
     fps, wall = summary.get("fps"), summary.get("wall_time_s")
     out["fps"] = None if _missing(fps) else round(float(fps), 1)
     out["wall_time_s"] = None if _missing(wall) else round(float(wall), 1)
@@ -303,8 +303,8 @@ RUN_FIELDS = [
     "episodes",
     "success_rate",
     "return_mean",
-    "frames_to_95",
-    "episodes_to_95",
+    *LEVEL_KEYS,
+    *RETURN_KEYS,
     "crafter_score",
     "fps",
     "wall_time_s",
@@ -321,8 +321,15 @@ def _spread(values: list[float]) -> tuple[float | None, float | None, float | No
 
 
 def _per_seed(runs: list[dict], key: str) -> str:
-    """``"1,234 / 2,004 / —"``: one value per done seed, ``—`` where the run never reached the target."""
-    return " / ".join("—" if r.get(key) is None else f"{int(r[key]):,}" for r in runs)
+    """``"1,234 / 2,004 / — / n/a"``: one value per done seed, ``—`` where the run never reached the target, ``n/a``
+    where its summary.json predates the key."""
+
+    def cell(r: dict) -> str:
+        if key in r.get("levels_unknown", ()):
+            return "n/a"
+        return "—" if r.get(key) is None else f"{int(r[key]):,}"
+
+    return " / ".join(cell(r) for r in runs)
 
 
 def _group(results: list[dict]) -> dict[tuple[str, str], list[dict]]:
@@ -355,10 +362,14 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             vals = [float(r[key]) for r in done if not _missing(r.get(key))]
             row[f"{key}_mean"] = statistics.mean(vals) if vals else None
             row[f"{key}_std"] = statistics.stdev(vals) if len(vals) > 1 else (0.0 if vals else None)
-        for key in ("frames_to_95", "episodes_to_95"):
+        targets = {r.get("return_target") for r in done} - {None}
+        row["return_target"] = targets.pop() if len(targets) == 1 else None  # mixed targets: no column
+        for key in (*LEVEL_KEYS, "frames_to_return"):
             reached = [r[key] for r in done if r.get(key) is not None]
-            row[f"{key}_mean"] = statistics.mean(reached) if reached else None
-            row[f"{key}_reached"] = len(reached)
+            known = all(key not in r.get("levels_unknown", ()) for r in done)
+            known = known and (key != "frames_to_return" or row["return_target"] is not None)
+            row[f"{key}_mean"] = statistics.mean(reached) if reached and known else None
+            row[f"{key}_reached"] = len(reached) if known else None
             row[f"{key}_per_seed"] = _per_seed(done, key)
         _add_iqm(row, env, "success_rate", [r.get("success_rate") for r in done])
         # episodes to 95%: only when every seed reached it (an IQM of the reached ones would flatter the arm)
@@ -400,7 +411,7 @@ def _to95(row: dict, key: str) -> str:
     if not row["seeds_done"]:
         return ""
     mean = row[f"{key}_mean"]
-    head = "not reached" if mean is None else f"{mean:,.0f}"
+    head = "n/a" if row[f"{key}_reached"] is None else "not reached" if mean is None else f"{mean:,.0f}"
     return f"{head} [{row[f'{key}_per_seed']}]"
 
 
@@ -450,12 +461,18 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     has_success = any(r["success_rate_mean"] is not None for r in rows)
     head = ["label", "env", "seeds done", "frames"] + (["final success"] if has_success else []) + ["final return"]
     head += ["Crafter score [per seed]"] if has_crafter else []
-    head += ["episodes to 95% [per seed]", "frames to 95% [per seed]"] if has_success else []
+    head += (
+        ["episodes to 95% [per seed]", "frames to 95% [per seed]", "frames to 80% [per seed]"] if has_success else []
+    )
+    targets = sorted({r["return_target"] for r in rows if r.get("return_target") is not None})
+    head += [f"frames to return {t:g} [per seed]" for t in targets]
     head += ["frames/s"]
     head += ["final success IQM [95% CI]", "episodes to 95% IQM [95% CI]"] if has_success else []
     note = (
-        "Final values: mean (min–max) across the seeds done; to 95%: mean of the seeds that reached 95% success, "
-        "then each seed's value (— not reached). IQM: interquartile mean over the seeds done with a 95% "
+        "Final values: mean (min–max) across the seeds done; to X%: the exact episode (and its frame) at which the "
+        "trailing 100-episode success rate first reached X, as the mean of the seeds that reached it, then each "
+        "seed's value (— not reached; n/a: its summary.json predates the record); frames to return: the same for "
+        "the trailing 100-episode mean return. IQM: interquartile mean over the seeds done with a 95% "
         "stratified-bootstrap interval (episodes to 95% only when every seed reached it)."
     )
     lines = [
@@ -473,7 +490,8 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [_cell(r, "success_rate", 3)] if has_success else []
         cells += [_cell(r, "return_mean", 2)]
         cells += [f"{_cell(r, 'crafter_score', 2)} [{r['crafter_score_per_seed']}]"] if has_crafter else []
-        cells += [_to95(r, "episodes_to_95"), _to95(r, "frames_to_95")] if has_success else []
+        cells += [_to95(r, k) for k in ("episodes_to_95", "frames_to_95", "frames_to_80")] if has_success else []
+        cells += [_to95(r, "frames_to_return") if r.get("return_target") == t else "" for t in targets]
         cells += [_cell(r, "fps", 0)]
         cells += [_iqm_cell(r, "success_rate", 3), _iqm_cell(r, "episodes_to_95", 0)] if has_success else []
         lines.append("| " + " | ".join(cells) + " |")

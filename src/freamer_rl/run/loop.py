@@ -96,7 +96,9 @@ class RunLoop:
         self.frames = 0
         self.batches = 0
         adapter = env_registry.get_adapter(cfg.env.adapter)
-        self.stats = EpisodeStats(window=cfg.logging.success_window, success_fn=adapter.success)
+        self.stats = EpisodeStats(
+            window=cfg.logging.success_window, success_fn=adapter.success, return_target=cfg.logging.return_target
+        )
         # the Crafter score over every training episode, for adapters that report achievements
         self.achievements = CrafterScore(adapter.achievements) if adapter.achievements else None
         self._lock: RunDirLock | None = None
@@ -228,6 +230,16 @@ class RunLoop:
         """The frames the collector will deliver for ``remaining`` more: whole batches."""
         return math.ceil(remaining / self.frames_per_batch) * self.frames_per_batch
 
+    # -- inspection seams (tests, benchmarks): the pieces train() runs, callable one at a time -----------------
+    def make_collector(self, remaining: int):
+        """The training collector for ``remaining`` more frames (whole batches), as :meth:`train` builds it; the
+        caller iterates it and shuts it down."""
+        return self._make_collector(remaining)
+
+    def learn(self, data: TensorDictBase) -> dict[str, float]:
+        """One learning step on a collected batch ``[*B, T]``, as :meth:`train` runs it; returns its log values."""
+        return self._learn(data)
+
     def _make_collector(self, remaining: int):
         seed = self.cfg.run.seed * 10_000 + self.frames  # a resumed run does not replay the same episodes
         # envs step on the CPU; the policy runs on run.device and the batch is stored there for the learner
@@ -341,8 +353,7 @@ class RunLoop:
             "episodes": self.stats.episodes,
             "final_success_rate": self.stats.success_rate,
             "final_return_mean": self.stats.mean_return,
-            "frames_to_95": self.stats.first_target_frames,
-            "episodes_to_95": self.stats.first_target_episodes,
+            **self.stats.level_summary(),
             "wall_time_s": wall,  # from the trainer's start (model build and compiling included), all attempts
             "fps": self.frames / wall if wall > 0 else None,
             **self._extra_summary(),

@@ -29,10 +29,14 @@ from freamer_rl.run.checkpoint import run_file_errors
 logger = logging.getLogger(__name__)
 
 SUCCESS_TARGET = 0.95
+#: success rates whose first reaching every run records: the exact episode (and its frame) at which the trailing
+#: ``window``-episode success rate first reaches the level (summary ``frames_to_80`` / ``episodes_to_80``, ``_95``)
+SUCCESS_LEVELS = (0.8, SUCCESS_TARGET)
 PROGRESS_LOG_INTERVAL_S = 10.0
 
 __all__ = [
     "RETURN_SERIES",
+    "SUCCESS_LEVELS",
     "SUCCESS_TARGET",
     "EpisodeStats",
     "LogMeans",
@@ -49,7 +53,15 @@ NOISY_LIBRARY_LOGGERS = ("torchrl", "tensordict")
 
 @dataclass
 class EpisodeStats:
-    """Running episode statistics over the whole run and a success window of the last ``window`` episodes."""
+    """Running episode statistics over the whole run and a success window of the last ``window`` episodes.
+
+    ``first_reached[level]``: ``(frames, episodes)`` at the episode whose end first brings the trailing ``window``-episode
+    success rate to ``level`` or above (a full window only), for each of :data:`SUCCESS_LEVELS`; the frame counts
+    every env's steps up to that episode's time step within its batch. ``None``: not known (a checkpoint older than the
+    level's record). The project's one definition of "frames / episodes to X% success" (reports and chains use it).
+    ``return_target`` (``logging.return_target``): the same for the windowed mean return reaching a level
+    (``first_return``), e.g. CartPole's 475.
+    """
 
     window: int = 100
     # episode-end entries of the "next" tensordict [N] -> bool [N]; None: the task has no success (returns only)
@@ -58,8 +70,9 @@ class EpisodeStats:
     recent_success: deque = field(default_factory=deque)
     recent_return: deque = field(default_factory=deque)
     recent_length: deque = field(default_factory=deque)
-    first_target_frames: int | None = None
-    first_target_episodes: int | None = None
+    first_reached: dict[float, tuple[int, int] | None] = field(default_factory=dict)
+    return_target: float | None = None
+    first_return: tuple[int, int] | None = None
 
     def update(self, data: TensorDictBase, frames_before: int) -> None:
         nxt = data["next"]
@@ -89,14 +102,44 @@ class EpisodeStats:
                 self._push(self.recent_success, float(succ[i]))
             self._push(self.recent_return, float(rets[i]))
             self._push(self.recent_length, float(lens[i]))
+            frames = frames_before + (end_steps[i] + 1) * B
+            if succ is not None and len(self.recent_success) >= self.window:
+                self._note_levels(frames)
             if (
-                succ is not None
-                and self.first_target_episodes is None
-                and len(self.recent_success) >= self.window
-                and self.success_rate >= SUCCESS_TARGET
+                self.return_target is not None
+                and self.first_return is None
+                and len(self.recent_return) >= self.window
+                and self.mean_return >= self.return_target
             ):
-                self.first_target_episodes = self.episodes
-                self.first_target_frames = frames_before + (end_steps[i] + 1) * B
+                self.first_return = (frames, self.episodes)
+
+    def _note_levels(self, frames: int) -> None:
+        rate = self.success_rate
+        for level in SUCCESS_LEVELS:
+            if level not in self.first_reached and rate >= level:
+                self.first_reached[level] = (frames, self.episodes)
+
+    def frames_to(self, level: float) -> int | None:
+        """Frames at which the windowed success rate first reached ``level`` (``None``: not yet, or not known)."""
+        hit = self.first_reached.get(level)
+        return None if hit is None else hit[0]
+
+    def episodes_to(self, level: float) -> int | None:
+        """Episodes at which the windowed success rate first reached ``level`` (``None``: not yet, or not known)."""
+        hit = self.first_reached.get(level)
+        return None if hit is None else hit[1]
+
+    def level_summary(self) -> dict[str, int | None]:
+        """``{"frames_to_80": ..., "episodes_to_80": ..., "frames_to_95": ..., "episodes_to_95": ...}``."""
+        out: dict[str, int | None] = {}
+        for level in SUCCESS_LEVELS:
+            pct = round(100 * level)
+            out[f"frames_to_{pct}"] = self.frames_to(level)
+            out[f"episodes_to_{pct}"] = self.episodes_to(level)
+        if self.return_target is not None:
+            out["return_target"] = self.return_target
+            out["frames_to_return"], out["episodes_to_return"] = self.first_return or (None, None)
+        return out
 
     def _push(self, q: deque, v: float) -> None:
         q.append(v)
@@ -122,8 +165,8 @@ class EpisodeStats:
             "recent_success": list(self.recent_success),
             "recent_return": list(self.recent_return),
             "recent_length": list(self.recent_length),
-            "first_target_frames": self.first_target_frames,
-            "first_target_episodes": self.first_target_episodes,
+            "first_reached": [[level, None if hit is None else list(hit)] for level, hit in self.first_reached.items()],
+            "first_return": None if self.first_return is None else [self.return_target, *self.first_return],
         }
 
     def load_state_dict(self, sd: dict) -> None:
@@ -132,8 +175,16 @@ class EpisodeStats:
         self.recent_success = deque(sd["recent_success"])
         self.recent_return = deque(sd["recent_return"])
         self.recent_length = deque(sd["recent_length"])
-        self.first_target_frames = sd["first_target_frames"]
-        self.first_target_episodes = sd["first_target_episodes"]
+        if "first_reached" in sd:
+            self.first_reached = {float(lv): None if hit is None else tuple(hit) for lv, hit in sd["first_reached"]}
+            hit = sd.get("first_return")  # kept only if it was recorded for the same target
+            self.first_return = None if hit is None or hit[0] != self.return_target else (int(hit[1]), int(hit[2]))
+            return
+        # a checkpoint from before SUCCESS_LEVELS recorded only the 95% level; the others are not known
+        old = sd.get("first_target_frames"), sd.get("first_target_episodes")
+        self.first_reached = {level: None for level in SUCCESS_LEVELS if level != SUCCESS_TARGET}
+        if old[0] is not None:
+            self.first_reached[SUCCESS_TARGET] = (int(old[0]), int(old[1]))
 
 
 def format_rate(value: float, digits: int = 2) -> str:

@@ -318,6 +318,10 @@ class Trainer(RunLoop):
             self._shaping_logs = self.shaper(data, self.stats.success_rate)
         return self.gae(data)
 
+    def update(self, data: TensorDictBase) -> dict[str, float]:
+        """The PPO epochs on a batch that :meth:`compute_advantage` prepared; returns the averaged loss terms."""
+        return self._update(data)
+
     # -- optimisation ---------------------------------------------------------------------------------------
     def _update(self, data: TensorDictBase) -> dict[str, float]:
         p = self.cfg.ppo
