@@ -211,8 +211,9 @@ class MiniGridEnv(EnvBase):
             that only read ``"mission_tokens"`` can pass ``False``.
         vocab: mission vocabulary (defaults to :data:`MINIGRID_VOCAB`).
         language_reward: ``None`` (off, no cost) or a plain dict ``{"parser": "regex" | "llm", "llm_path",
-            "r_scale", "goal_bonus", "proximity_bonus"}`` (missing keys take
-            :data:`~freamer_rl_envs.minigrid_language.LANGUAGE_REWARD_DEFAULTS`): write ``"lang_reward"``.
+            "r_scale", "goal_bonus", "proximity_bonus", "distance": "observed" | "oracle" | "none"}`` (missing keys
+            take :data:`~freamer_rl_envs.minigrid_language.LANGUAGE_REWARD_DEFAULTS`; ``"oracle"`` reads the full
+            map, privileged information): write ``"lang_reward"``.
 
     Raises:
         ValueError: unknown env id, an env without MiniGrid's ``image``/``direction``/``mission`` observations,

@@ -94,11 +94,14 @@ def test_distance_field_on_a_hand_built_grid():
     assert distance_field(grid, lambda o: o is not None and o.type == "key") is None
 
 
-def test_doorkey_script_pays_every_term_in_closed_form():
+@pytest.mark.parametrize("distance", ["observed", "oracle"])
+def test_doorkey_script_pays_every_term_in_closed_form(distance):
     """key picked up -> door opened -> goal reached: b_goal once each, s_match while the target is in view,
-    b_prox = P per cell gained towards the goal (3 -> 2 -> 1), 0 on the steps the target changes."""
+    b_prox = P per cell gained towards the goal (3 -> 2 -> 1), 0 on the steps the target changes. Both distances
+    agree here: the goal becomes current when the door opens, and is seen through it on that step, with the walls
+    next to the door, so the seen map's shortest path is the true one."""
     env, u, obs = _gym(DOORKEY, 1)
-    tracker = _tracker(KEY_DOOR_GOAL)
+    tracker = _tracker(KEY_DOOR_GOAL, distance=distance)
     values = [tracker.reset(u, obs["image"])]
     targets = [tracker.current_target]
     for a in DOORKEY_SCRIPT:
@@ -134,10 +137,11 @@ def test_colour_must_match():
 
 
 def test_s_match_follows_the_target_into_view_and_b_prox_the_distance():
-    """MultiRoom: the goal enters the view when the door opens; each step's R_lang is R * [goal in view] +
-    P * (distance decrease) until the goal pays G."""
+    """MultiRoom, oracle distance (the full map): the goal enters the view when the door opens; each step's R_lang
+    is R * [goal in view] + P * (distance decrease) until the goal pays G. (The observed distance of the same
+    script: tests/envs/test_minigrid_language_observed.py.)"""
     env, u, obs = _gym(MULTIROOM, 1)
-    tracker = _tracker(GOAL_ONLY)
+    tracker = _tracker(GOAL_ONLY, distance="oracle")
     assert tracker.reset(u, obs["image"]) == 0.0 and tracker.distance(u) == 5
     d_prev = 5
     for t, (a, d) in enumerate(zip(MULTIROOM_SCRIPT, MULTIROOM_DISTANCES)):
@@ -296,6 +300,7 @@ def test_option_is_checked_and_picklable():
         "r_scale": 0.1,
         "goal_bonus": 1.0,
         "proximity_bonus": 0.1,
+        "distance": "observed",
     }
     with pytest.raises(ValueError, match="unknown keys"):
         check_language_option({"scale": 1.0})
@@ -303,6 +308,8 @@ def test_option_is_checked_and_picklable():
         check_language_option({"parser": "gpt"})
     with pytest.raises(ValueError, match="llm_path"):
         check_language_option({"parser": "llm"})
+    with pytest.raises(ValueError, match=r"language_reward\['distance'\]: expected one of observed, oracle, none"):
+        check_language_option({"distance": "magic"})
     factory = functools.partial(make_minigrid_env, DOORKEY, language_reward=dict(OPTION))
     assert pickle.loads(pickle.dumps(factory)).keywords["language_reward"] == OPTION
 
@@ -313,3 +320,5 @@ def test_language_reward_option_from_the_config():
     cfg.shaping.language.weight = 0.2
     cfg.shaping.language.r_scale = 0.5
     assert language_reward_option(cfg) == {**check_language_option({}), "r_scale": 0.5}
+    cfg.shaping.language.distance = "none"
+    assert language_reward_option(cfg)["distance"] == "none"

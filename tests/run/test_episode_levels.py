@@ -4,7 +4,9 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
+import pytest
 import torch
 from tensordict import TensorDict
 
@@ -118,3 +120,24 @@ def test_the_report_has_a_frames_to_return_column_when_runs_set_a_target(tmp_pat
     assert "frames to return 475 [per seed]" in md
     assert "| 900 [900] |" in next(line for line in md.splitlines() if line.startswith("| a |"))
     assert "| not reached [—] |" in next(line for line in md.splitlines() if line.startswith("| b |"))
+
+
+def test_an_arm_with_privileged_information_is_marked_in_the_report(tmp_path):
+    plain = _run(tmp_path, "plain", {"privileged": []})
+    oracle = _run(tmp_path, "oracle", {"privileged": ["shaping.language.distance=oracle"]})
+    write_report(tmp_path / "out", "demo", [plain, oracle])
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "| oracle (privileged) |" in md and "| plain |" in md
+    assert "- oracle: shaping.language.distance=oracle" in md
+
+
+@pytest.mark.parametrize("distance, expected", [("oracle", ["shaping.language.distance=oracle"]), ("observed", [])])
+def test_a_run_with_the_oracle_distance_says_so_in_its_summary(tmp_path, distance, expected):
+    from freamer_rl.trainers.minigrid_ppo import Trainer
+    from freamer_rl.trainers.registry import load_config
+
+    tiny = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
+    cfg = load_config(tiny, ["shaping.language.weight=0.2", f"shaping.language.distance={distance}"])
+    summary = Trainer(cfg, tmp_path / "run").train()
+    assert summary["privileged"] == expected
+    assert json.loads((tmp_path / "run" / "summary.json").read_text())["privileged"] == expected

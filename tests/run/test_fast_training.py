@@ -113,7 +113,7 @@ def test_compiled_dnc_matches_eager_in_both_modes():
     eager = DNCModule(16, 8, 8)
     fast = DNCModule(16, 8, 8, compile=True)
     fast.load_state_dict(eager.state_dict())
-    b, t = 3, 5
+    b, t = 3, 3  # short: compiling dominates the time, and t = 3 still has a reset inside a row
     td = TensorDict(
         {
             "fused": 3 * torch.randn(b, t, 16),
@@ -122,7 +122,7 @@ def test_compiled_dnc_matches_eager_in_both_modes():
         },
         [b, t],
     )
-    td["is_init"][1, 2] = True
+    td["is_init"][1, 1] = True
     outs = []
     for m in (eager, fast):
         with set_recurrent_mode(True):

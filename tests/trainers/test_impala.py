@@ -162,7 +162,9 @@ def test_async_run_checkpoints_resumes_and_evaluates(tmp_path):
     for col in ("loss_objective", "loss_critic", "loss_entropy", "grad_norm", "rho_mean", "rho_clipped", "policy_lag"):
         assert col in rows[0] and all(math.isfinite(float(r[col])) for r in rows), col
     assert all(float(r["policy_lag"]) >= 0 for r in rows)
-    summary = spec.train(load_config(RECIPE, [*first, "run.total_frames=384"]), run)
+    # the resume goes on with one actor: the learner's checkpoint does not depend on the actors (and no second worker
+    # start-up is paid here)
+    summary = spec.train(load_config(RECIPE, [*first, "collector.num_collectors=1", "run.total_frames=384"]), run)
     assert summary["frames"] == 384 and read_checkpoint(latest_checkpoint(run))["frames"] == 384
     result = spec.evaluate(latest_checkpoint(run), episodes=2, deterministic=True)
     assert result["episodes"] == 2 and "success_rate" in result

@@ -75,6 +75,7 @@ TINY = {
         [
             "env.id=MiniGrid-Empty-5x5-v0",
             "env.num_envs=2",
+            "collector.num_collectors=1",  # one actor: no worker start-up (test_impala.py runs the two-actor path)
             "network.hidden=16",
             "impala.frames_per_batch=64",
             "run.total_frames=128",

@@ -281,6 +281,7 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
         out[col] = _final(summary, last, skey, pkey)
     for key in (*LEVEL_KEYS, *RETURN_KEYS):
         out[key] = summary.get(key)
+    out["privileged"] = " ".join(summary.get("privileged") or [])  # settings that read what the agent cannot see
     # a summary.json older than a level's record (frames_to_80 came later) does not know it: "n/a", not "not reached"
     out["levels_unknown"] = sorted(k for k in LEVEL_KEYS if summary and k not in summary)
     fps, wall = summary.get("fps"), summary.get("wall_time_s")
@@ -308,6 +309,7 @@ RUN_FIELDS = [
     "crafter_score",
     "fps",
     "wall_time_s",
+    "privileged",
     "error",
     "run_dir",
 ]
@@ -352,6 +354,7 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             "done_seeds": " ".join(str(r["seed"]) for r in done),
             "failed": sum(r["status"] == "failed" for r in runs),
             "chain": any(r.get("chain") for r in runs),
+            "privileged": " ".join(sorted({r["privileged"] for r in done if r.get("privileged")})),
         }
         for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps"):
             row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
@@ -486,6 +489,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     for r in rows:
         seeds = f"{r['seeds_done']}/{r['seeds']}" + (f" ({r['done_seeds']})" if r["done_seeds"] else "")
         label = f"{r['label']} (chain)" if r.get("chain") else r["label"]
+        label += " (privileged)" if r.get("privileged") else ""
         cells = [label, r["env"], seeds, _cell(r, "frames", 0)]
         cells += [_cell(r, "success_rate", 3)] if has_success else []
         cells += [_cell(r, "return_mean", 2)]
@@ -501,6 +505,13 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
             "(chain): a curriculum chain; its frames, episodes and to-95% values are counted across all its stages, "
             "its final values are its last stage's (the env shown).",
         ]
+    privileged = [r for r in rows if r.get("privileged")]
+    if privileged:
+        lines += [
+            "",
+            "(privileged): the arm reads what the agent cannot observe, so it is not a like-for-like comparison:",
+        ]
+        lines += [f"- {r['label']}: {r['privileged']}" for r in privileged]
     lines += health_markdown(rows)
     failed = [r for r in results if r["status"] == "failed"]
     if failed:

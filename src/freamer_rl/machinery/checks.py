@@ -5,8 +5,9 @@ from __future__ import annotations
 from typing import Any
 
 from freamer_rl.errors import ConfigError
+from freamer_rl.machinery.config import LANGUAGE_DISTANCES
 
-__all__ = ["check_machinery", "check_shaping"]
+__all__ = ["check_machinery", "check_shaping", "privileged_information"]
 
 
 def check_shaping(cfg: Any) -> None:
@@ -14,6 +15,10 @@ def check_shaping(cfg: Any) -> None:
     lang = cfg.shaping.language
     if lang.parser not in ("regex", "llm"):
         raise ConfigError(f"shaping.language.parser: expected 'regex' or 'llm', got {lang.parser!r}")
+    if lang.distance not in LANGUAGE_DISTANCES:
+        raise ConfigError(
+            f"shaping.language.distance: expected one of {', '.join(LANGUAGE_DISTANCES)}, got {lang.distance!r}"
+        )
     if lang.weight and lang.parser == "llm" and not lang.llm_path:
         raise ConfigError(
             "shaping.language.llm_path: parser 'llm' needs the local directory of the model weights "
@@ -21,6 +26,16 @@ def check_shaping(cfg: Any) -> None:
         )
     if cfg.shaping.novelty.weight and not cfg.shaping.novelty.keys:
         raise ConfigError("shaping.novelty.keys: got [], give at least one observation entry to hash")
+
+
+def privileged_information(cfg: Any) -> list[str]:
+    """What of a run's config reads information the agent cannot observe, as ``"dotted.key=value"`` entries ([] when
+    nothing does): ``shaping.language.distance=oracle`` with the language reward on (its b_prox is a BFS on the full
+    MiniGrid map). A schema without a ``shaping`` section has none."""
+    lang = cfg.shaping.language if hasattr(cfg, "shaping") else None
+    if lang is not None and lang.weight and lang.distance == "oracle":
+        return ["shaping.language.distance=oracle"]
+    return []
 
 
 def check_machinery(cfg: Any) -> None:

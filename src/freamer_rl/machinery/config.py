@@ -6,6 +6,9 @@ from dataclasses import dataclass, field
 
 from freamer_rl.config.checks import NON_NEGATIVE, POSITIVE, Range
 
+#: Choices of ``shaping.language.distance``: how b_prox of R_lang measures the distance to the current target.
+LANGUAGE_DISTANCES: tuple[str, ...] = ("observed", "oracle", "none")
+
 
 @dataclass
 class LanguageRewardConfig:
@@ -17,6 +20,9 @@ class LanguageRewardConfig:
     r_scale: float = 0.1  # per step while the current target is in view
     goal_bonus: float = 1.0  # once per target reached (key carried, door opened, goal reached)
     proximity_bonus: float = 0.1  # per cell of shortest-path distance gained towards the current target
+    # the distance of b_prox: observed (BFS on the cells seen so far this episode, unseen cells passable, only seen
+    # targets) | oracle (BFS on the full map the agent cannot see: privileged information, flagged as such) | none
+    distance: str = "observed"
 
 
 @dataclass

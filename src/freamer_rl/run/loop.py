@@ -9,6 +9,7 @@ and interrupt checkpoints, the progress display. A subclass provides the learnin
 * ``_learn(data) -> dict of floats`` -- everything done with one collected batch ``[*B, T]`` (advantages, updates);
 * ``_model_state()`` / ``_load_model_state(ckpt, path)`` -- its own checkpoint entries (model, optimiser, ...);
 * ``_extra_row()`` / ``_extra_summary()`` -- its own progress.csv columns and summary entries;
+* ``_privileged_information()`` -- the settings that read what the agent cannot observe (summary ``privileged``);
 * ``_compiling()`` -- True when the first batches compile (one "compiling ..." log line before the first batch);
 * ``frames_per_batch``, ``trainer_name`` (the checkpoint's ``"trainer"`` entry, a key of
   ``freamer_rl.trainers.registry.TRAINERS``; a resume refuses another trainer's checkpoint) and ``trainer_label``
@@ -148,6 +149,11 @@ class RunLoop:
 
     def _extra_summary(self) -> dict[str, Any]:
         return {}
+
+    def _privileged_information(self) -> list[str]:
+        """The settings that give the agent what it cannot observe (e.g. ``shaping.language.distance=oracle``):
+        summary.json's ``privileged`` list, which the suite reports mark. Default none."""
+        return []
 
     def _compiling(self) -> bool:
         """Whether the first batches compile parts of the model (a log line says so before the bar moves)."""
@@ -354,6 +360,7 @@ class RunLoop:
             "final_success_rate": self.stats.success_rate,
             "final_return_mean": self.stats.mean_return,
             **self.stats.level_summary(),
+            "privileged": self._privileged_information(),
             "wall_time_s": wall,  # from the trainer's start (model build and compiling included), all attempts
             "fps": self.frames / wall if wall > 0 else None,
             **self._extra_summary(),

@@ -54,7 +54,7 @@ from freamer_rl.config.sections import (
 )
 from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.layers.checks import set_value_checks
-from freamer_rl.machinery.checks import check_machinery
+from freamer_rl.machinery.checks import check_machinery, privileged_information
 from freamer_rl.machinery.config import MACHINERY_RANGES, OGMConfig, ShapingConfig, SuccessBufferConfig
 from freamer_rl.machinery.mission import parser_stats
 from freamer_rl.machinery.ogm import OGMGE
@@ -278,6 +278,9 @@ class Trainer(RunLoop):
 
     def _extra_summary(self) -> dict[str, Any]:
         return {"gates": self.modules.gates(), **self._fallback_counts()}
+
+    def _privileged_information(self) -> list[str]:
+        return privileged_information(self.cfg)
 
     # -- inspection seams (tests, benchmarks): one step of what train() does, without training -----------------
     def collect_batch(self) -> TensorDictBase:
