@@ -43,7 +43,7 @@ def test_readme_bring_your_own_env_cartpole_trains():
     scope = _run_section("## Bring your own env")
     assert torch.isfinite(scope["loss"]).all()
     returns = _finite_means(scope["returns"])
-    assert len(returns) >= 12  # 16 batches; a batch in which no episode ended has no mean
-    # random play lasts ~20 steps; the policy must at least triple that within the example's 8k frames (a run here:
-    # 19 -> 22 -> ... -> 181, 8x)
+    assert len(returns) >= 8  # of 16 batches: one in which no episode ended (a good policy's 64 steps) has no mean
+    # random play lasts ~20 steps; the policy must at least triple that within the example's 8k frames (runs here: 6.5x,
+    # 8x, 8.9x)
     assert sum(returns[-4:]) / 4 > 3 * sum(returns[:2]) / 2, returns
