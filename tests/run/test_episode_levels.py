@@ -141,3 +141,18 @@ def test_a_run_with_the_oracle_distance_says_so_in_its_summary(tmp_path, distanc
     summary = Trainer(cfg, tmp_path / "run").train()
     assert summary["privileged"] == expected
     assert json.loads((tmp_path / "run" / "summary.json").read_text())["privileged"] == expected
+
+
+def test_every_trainer_reports_its_trainable_parameters_and_the_suite_tables_them(tmp_path):
+    from freamer_rl.trainers.minigrid_ppo import Trainer
+    from freamer_rl.trainers.registry import load_config
+
+    tiny = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
+    trainer = Trainer(load_config(tiny), tmp_path / "run")
+    summary = trainer.train()
+    assert summary["trainable_params"] == sum(p.numel() for p in trainer.params if p.requires_grad) > 0
+    record = RunRecord(label="t", env="e", env_dir="e", seed=0, run_dir=tmp_path / "run", target_frames=None)
+    (tmp_path / "run" / "done.json").write_text(json.dumps({"total_frames": summary["frames"]}))
+    write_report(tmp_path / "out", "demo", [record])
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "trainable params" in md and f"{summary['trainable_params']:,}" in md

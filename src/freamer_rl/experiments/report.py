@@ -281,6 +281,7 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
         out[col] = _final(summary, last, skey, pkey)
     for key in (*LEVEL_KEYS, *RETURN_KEYS):
         out[key] = summary.get(key)
+    out["trainable_params"] = summary.get("trainable_params")
     out["privileged"] = " ".join(summary.get("privileged") or [])  # settings that read what the agent cannot see
     # a summary.json older than a level's record (frames_to_80 came later) does not know it: "n/a", not "not reached"
     out["levels_unknown"] = sorted(k for k in LEVEL_KEYS if summary and k not in summary)
@@ -309,6 +310,7 @@ RUN_FIELDS = [
     "crafter_score",
     "fps",
     "wall_time_s",
+    "trainable_params",
     "privileged",
     "error",
     "run_dir",
@@ -356,7 +358,7 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             "chain": any(r.get("chain") for r in runs),
             "privileged": " ".join(sorted({r["privileged"] for r in done if r.get("privileged")})),
         }
-        for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps"):
+        for key in ("frames", "success_rate", "return_mean", "crafter_score", "fps", "trainable_params"):
             row[f"{key}_mean"], row[f"{key}_min"], row[f"{key}_max"] = _spread([r.get(key) for r in done])
         row["crafter_score_per_seed"] = " / ".join(
             "—" if _missing(r.get("crafter_score")) else f"{r['crafter_score']:.2f}" for r in done
@@ -469,7 +471,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     )
     targets = sorted({r["return_target"] for r in rows if r.get("return_target") is not None})
     head += [f"frames to return {t:g} [per seed]" for t in targets]
-    head += ["frames/s"]
+    head += ["frames/s", "trainable params"]
     head += ["final success IQM [95% CI]", "episodes to 95% IQM [95% CI]"] if has_success else []
     note = (
         "Final values: mean (min–max) across the seeds done; to X%: the exact episode (and its frame) at which the "
@@ -496,7 +498,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [f"{_cell(r, 'crafter_score', 2)} [{r['crafter_score_per_seed']}]"] if has_crafter else []
         cells += [_to95(r, k) for k in ("episodes_to_95", "frames_to_95", "frames_to_80")] if has_success else []
         cells += [_to95(r, "frames_to_return") if r.get("return_target") == t else "" for t in targets]
-        cells += [_cell(r, "fps", 0)]
+        cells += [_cell(r, "fps", 0), _cell(r, "trainable_params", 0)]
         cells += [_iqm_cell(r, "success_rate", 3), _iqm_cell(r, "episodes_to_95", 0)] if has_success else []
         lines.append("| " + " | ".join(cells) + " |")
     if any(r.get("chain") for r in rows):

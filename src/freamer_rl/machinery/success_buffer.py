@@ -55,6 +55,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from typing import Any, NamedTuple
 
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -74,7 +75,9 @@ __all__ = [
     "LOSS_MASK_KEY",
     "REPLAY_NEXT_KEYS",
     "DEFAULT_REWARD_KEY",
+    "ReplayModules",
     "SuccessBuffer",
+    "SuccessReplay",
     "correct_replay",
     "mix_minibatch",
     "replay_sequences",
@@ -498,9 +501,26 @@ def weighted_ppo_loss(loss_td: TensorDictBase, weights: torch.Tensor) -> dict[st
 # ----------------------------------------------------------------------------------------------------------------
 # The trainer's side
 # ----------------------------------------------------------------------------------------------------------------
+class ReplayModules(NamedTuple):
+    """What :class:`SuccessReplay` runs on replayed ``[S, L]`` sequences; ``FreamerModules`` has the same three
+    attributes, and any actor-critic whose heads read a trunk's outputs can be given as one of these.
+
+    ``trunk``: a TensorDictModule writing ``trunk.out_keys`` (dropped when storing, recomputed on replay), run under
+    ``set_recurrent_mode(True)`` from the stored state at ``t = 0`` (a feed-forward trunk ignores the mode);
+    ``actor``: a probabilistic head with ``get_dist(td)``; ``critic``: a head writing ``"state_value"``.
+    """
+
+    trunk: Any
+    actor: Any
+    critic: Any
+
+
 class SuccessReplay:
-    """What :class:`freamer_rl.trainers.minigrid_ppo.Trainer` does with the buffer: store each batch's successful episodes after
-    training on it, and mix corrected replayed sequences into every minibatch (``success_buffer`` recipe section).
+    """What a PPO trainer does with the buffer (``success_buffer`` recipe section): store each batch's successful
+    episodes after training on it, and mix corrected replayed sequences into every ``[S, L]`` minibatch.
+    ``modules``: :class:`ReplayModules` or anything with the same ``trunk`` / ``actor`` / ``critic`` (FreamerV1's
+    ``FreamerModules``; the PPO baseline's ``ActorValueOperator`` parts); ``cfg`` needs ``ppo.gamma``,
+    ``ppo.sequence_length`` and ``success_buffer``.
 
     The buffer is not part of checkpoints (a DNC state per stored step makes it tens of MB): a resumed run refills
     it from the successes it collects next.

@@ -10,6 +10,7 @@ and interrupt checkpoints, the progress display. A subclass provides the learnin
 * ``_model_state()`` / ``_load_model_state(ckpt, path)`` -- its own checkpoint entries (model, optimiser, ...);
 * ``_extra_row()`` / ``_extra_summary()`` -- its own progress.csv columns and summary entries;
 * ``_privileged_information()`` -- the settings that read what the agent cannot observe (summary ``privileged``);
+* ``_trainable_parameters()`` -- summary ``trainable_params`` (default: ``self.optimizer``'s parameters);
 * ``_compiling()`` -- True when the first batches compile (one "compiling ..." log line before the first batch);
 * ``frames_per_batch``, ``trainer_name`` (the checkpoint's ``"trainer"`` entry, a key of
   ``freamer_rl.trainers.registry.TRAINERS``; a resume refuses another trainer's checkpoint) and ``trainer_label``
@@ -149,6 +150,14 @@ class RunLoop:
 
     def _extra_summary(self) -> dict[str, Any]:
         return {}
+
+    def _trainable_parameters(self) -> int | None:
+        """Parameters the trainer's optimiser updates (summary ``trainable_params``, a column of every suite table);
+        default: those of ``self.optimizer``'s groups, None without one."""
+        optimizer = getattr(self, "optimizer", None)
+        if optimizer is None:
+            return None
+        return sum(p.numel() for group in optimizer.param_groups for p in group["params"])
 
     def _privileged_information(self) -> list[str]:
         """The settings that give the agent what it cannot observe (e.g. ``shaping.language.distance=oracle``):
@@ -361,6 +370,7 @@ class RunLoop:
             "final_return_mean": self.stats.mean_return,
             **self.stats.level_summary(),
             "privileged": self._privileged_information(),
+            "trainable_params": self._trainable_parameters(),
             "wall_time_s": wall,  # from the trainer's start (model build and compiling included), all attempts
             "fps": self.frames / wall if wall > 0 else None,
             **self._extra_summary(),

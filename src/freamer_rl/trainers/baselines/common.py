@@ -11,6 +11,8 @@ import torch
 from torchrl.modules import ActorValueOperator, LSTMModule, set_recurrent_mode
 
 from freamer_rl.errors import CheckpointError
+from freamer_rl.machinery.checks import privileged_information
+from freamer_rl.machinery.success_buffer import LOSS_WEIGHT_KEY, SuccessReplay, weighted_ppo_loss
 from freamer_rl.run.corruption import corruption_transforms
 from freamer_rl.run.envs import probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
@@ -50,6 +52,8 @@ class ActorCriticRunLoop(RunLoop):
         self.params = [p for p in self.net.parameters() if p.requires_grad]
         self.optimizer = torch.optim.Adam(self.params, lr=cfg.optim.lr, eps=cfg.optim.eps)
         self.step_stats = StepStats(type(self).__name__)
+        #: the success buffer (App. G.3) a PPO subclass sets; None: every minibatch is the collected one
+        self.replay: SuccessReplay | None = None
 
     def _policy(self) -> Any:
         return self.net.get_policy_operator()
@@ -72,12 +76,19 @@ class ActorCriticRunLoop(RunLoop):
         ``minibatches``: TensorDicts ``[N]`` (or ``[N, L]`` whole sequences for a recurrent trunk, which then runs
         in recurrent mode as the loss's own forward does) holding the observations, ``action``,
         ``action_log_prob``, ``advantage`` and ``value_target`` (and ``is_init`` plus the stored LSTM state).
+        With ``self.replay`` (``[N, L]`` sequences and a loss built with ``reduction="none"``), each minibatch gets
+        its share of corrected replayed sequences (:meth:`SuccessReplay.mix`) and the per-step losses are reduced
+        with their ``"loss_weight"`` (:func:`weighted_ppo_loss`).
         """
         means = LogMeans()
         for mb in minibatches:
+            if self.replay is not None:
+                mb = self.replay.mix(mb)
             with set_recurrent_mode(True):  # a feed-forward trunk ignores it
                 mb = self.common(mb)
             loss_td = self.loss(mb)
+            if self.replay is not None:  # per-step losses weighted by the truncated importance weights
+                loss_td = weighted_ppo_loss(loss_td, mb[LOSS_WEIGHT_KEY])
             total = loss_td["loss_objective"] + loss_td["loss_critic"] + loss_td["loss_entropy"]
             grad_norm = optimizer_step(
                 total, self.optimizer, self.params, self.cfg.optim.max_grad_norm, self.step_stats, foreach=True
@@ -114,6 +125,9 @@ class ActorCriticRunLoop(RunLoop):
 
     def _extra_summary(self) -> dict[str, Any]:
         return {"skipped_steps": self.step_stats.skipped}
+
+    def _privileged_information(self) -> list[str]:
+        return privileged_information(self.cfg)
 
 
 def evaluate_actor_critic(path: Path, schema: type, **options: Any) -> dict[str, Any]:

@@ -30,7 +30,7 @@ from freamer_rl.config.sections import (
 )
 from freamer_rl.errors import ConfigError
 from freamer_rl.machinery.checks import check_shaping
-from freamer_rl.machinery.config import MACHINERY_RANGES, ShapingConfig
+from freamer_rl.machinery.config import MACHINERY_RANGES, ShapingConfig, SuccessBufferConfig
 from freamer_rl.run.envs import check_env_writes
 
 __all__ = [
@@ -42,6 +42,7 @@ __all__ = [
     "NetworkConfig",
     "network_init",
     "check_network",
+    "check_baseline_shaping",
     "PPOBaselineConfig",
     "ImpalaSection",
     "ImpalaConfig",
@@ -117,22 +118,41 @@ _EMBEDDING_TERMS = {
     "curiosity": "R_intrinsic reads the fused embedding",
 }
 
+#: the machinery's range rows of the ``shaping`` and ``success_buffer`` sections (MACHINERY_RANGES' own)
+SHAPING_RANGES: dict[str, Range] = {k: v for k, v in MACHINERY_RANGES.items() if k.startswith("shaping.")}
+SUCCESS_BUFFER_RANGES: dict[str, Range] = {k: v for k, v in MACHINERY_RANGES.items() if k.startswith("success_buffer.")}
+
+
+def check_baseline_shaping(cfg, trainer: str) -> None:
+    """The ``shaping`` checks every trainer shares, then the two terms a baseline cannot compute refused by name."""
+    check_shaping(cfg)
+    for name, why in _EMBEDDING_TERMS.items():
+        if getattr(cfg.shaping, name):
+            raise ConfigError(
+                f"shaping.{name}: {why}, which the {trainer} trainer does not have; set it to 0 (the language "
+                "reward, novelty bonus, time penalty and adaptive decay work for every trainer)"
+            )
+    check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
+
 
 @dataclass
 class PPOBaselineConfig(BaseConfig):
-    """``trainer: ppo_baseline``: the shared base, ``ppo`` (FreamerV1's PPO section), ``network`` and ``shaping``
+    """``trainer: ppo_baseline``: the shared base, ``ppo`` (FreamerV1's PPO section), ``network``, ``shaping``
     (FreamerV1's section: the language reward, novelty bonus, time penalty and adaptive decay; not the two terms that
-    read FreamerV1's embeddings), so a comparison can give both sides the same shaping."""
+    read FreamerV1's embeddings) and ``success_buffer`` (FreamerV1's App. G.3 replay, every ``network.kind``), so a
+    comparison can give both sides the same machinery."""
 
     ppo: PPOConfig = field(default_factory=PPOConfig)
     network: NetworkConfig = field(default_factory=NetworkConfig)
     shaping: ShapingConfig = field(default_factory=ShapingConfig)
+    success_buffer: SuccessBufferConfig = field(default_factory=SuccessBufferConfig)
 
     RANGES: ClassVar[dict[str, Range]] = {
         **BASE_RANGES,
         **PPO_RANGES,
         **NETWORK_RANGES,
-        **{k: v for k, v in MACHINERY_RANGES.items() if k.startswith("shaping.")},
+        **SHAPING_RANGES,
+        **SUCCESS_BUFFER_RANGES,
     }
 
     def reads_observation(self, key: str) -> bool:
@@ -143,14 +163,7 @@ def validate_ppo_baseline(cfg: PPOBaselineConfig) -> None:
     check_base(cfg)
     check_ppo_layout(cfg)  # ppo.sequence_length tiles the [envs, T] batch: the *_lstm kinds train on sequences
     check_network(cfg.network, NETWORK_KINDS)
-    check_shaping(cfg)
-    for name, why in _EMBEDDING_TERMS.items():
-        if getattr(cfg.shaping, name):
-            raise ConfigError(
-                f"shaping.{name}: {why}, which the ppo_baseline trainer does not have; set it to 0 (the language "
-                "reward, novelty bonus, time penalty and adaptive decay work for every trainer)"
-            )
-    check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
+    check_baseline_shaping(cfg, "ppo_baseline")
 
 
 VALIDATORS[PPOBaselineConfig] = validate_ppo_baseline
@@ -174,7 +187,9 @@ class ImpalaSection:
 
 @dataclass
 class ImpalaConfig(BaseConfig):
-    """``trainer: impala``: the shared base, ``network`` (as the PPO baseline's) and ``impala``.
+    """``trainer: impala``: the shared base, ``network`` (as the PPO baseline's), ``impala`` and ``shaping`` (as the
+    PPO baseline's: V-trace reads the shaped reward, success is judged on the env's). ``success_buffer`` is there so
+    a recipe can say ``enabled: false``; ``enabled: true`` is refused at load (:func:`validate_impala` says why).
 
     Optimiser: Adam by default, not the paper's RMSprop -- the same optimiser, lr and grad clip as the PPO-MLP baseline
     it is compared with, so the comparison isolates V-trace + asynchronous actors; ``impala.optimizer: rmsprop``
@@ -183,6 +198,8 @@ class ImpalaConfig(BaseConfig):
 
     network: NetworkConfig = field(default_factory=NetworkConfig)
     impala: ImpalaSection = field(default_factory=ImpalaSection)
+    shaping: ShapingConfig = field(default_factory=ShapingConfig)
+    success_buffer: SuccessBufferConfig = field(default_factory=SuccessBufferConfig)
 
     RANGES: ClassVar[dict[str, Range]] = {
         **BASE_RANGES,
@@ -193,6 +210,8 @@ class ImpalaConfig(BaseConfig):
         "impala.critic_coeff": (NON_NEGATIVE, ">= 0"),
         "impala.rho_clip": (POSITIVE, "> 0"),
         "impala.rmsprop_alpha": (lambda v: 0 <= v < 1, "in [0, 1)"),
+        **SHAPING_RANGES,
+        **SUCCESS_BUFFER_RANGES,
     }
 
     def reads_observation(self, key: str) -> bool:
@@ -219,6 +238,16 @@ def validate_impala(cfg: ImpalaConfig) -> None:
     if s.frames_per_batch % s.minibatches:
         raise ConfigError(
             f"impala.minibatches: got {s.minibatches}, must divide impala.frames_per_batch ({s.frames_per_batch})"
+        )
+    check_baseline_shaping(cfg, "impala")
+    if cfg.success_buffer.enabled:
+        # IMPALA's V-trace already learns from stale data; the buffer's correction (GePPO) re-centres ClipPPOLoss's
+        # ratio on [S, L] sequences, and IMPALA's A2C steps on flat V-trace batches have neither; a replaying IMPALA
+        # would also no longer be the published baseline it stands for
+        raise ConfigError(
+            "success_buffer.enabled: trainer impala has no success buffer (its off-policy correction re-centres "
+            "PPO's clipped ratio, which IMPALA's A2C loss on V-trace targets does not have); set it to false, or "
+            "use trainer ppo_baseline"
         )
 
 

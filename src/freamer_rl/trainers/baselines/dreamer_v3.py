@@ -290,6 +290,9 @@ class DreamerTrainer(RunLoop):
     def _extra_summary(self) -> dict:
         return {"updates": self.updates}
 
+    def _trainable_parameters(self) -> int:
+        return sum(p.numel() for params in self.learner.params.values() for p in params)
+
     def _model_state(self) -> dict:
         return {"model": self.nets.state_dict(), "learner": self.learner.state_dict(), "updates": self.updates}
 

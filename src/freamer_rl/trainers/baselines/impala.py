@@ -20,6 +20,13 @@ Progress columns: ``loss_objective``, ``loss_critic``, ``loss_entropy``, ``entro
 0 = on-policy; fractional because the actors take new weights mid-rollout).
 The lag is measured by a version counter the actors' policy writes into every step (``policy_version``).
 
+The ``shaping`` section works as the PPO baseline's (:class:`~freamer_rl.machinery.shaping.RewardShaper`: language
+reward, novelty bonus, time penalty, adaptive decay; R_VL and curiosity are refused at load, there are no FreamerV1
+embeddings): the learner writes ``("next", "shaped_reward")`` into each batch and V-trace reads it; returns and
+success stay the env reward's. The novelty counts live in each actor process's env (one count table per worker).
+``success_buffer.enabled`` is refused at load (:func:`~freamer_rl.trainers.baselines.config.validate_impala`):
+the buffer's correction re-centres PPO's clipped ratio on sequences, which IMPALA's A2C step does not have.
+
     freamer-rl train recipes/baselines/impala_n2s4.yaml run.seed=1
 """
 
@@ -36,6 +43,7 @@ from torchrl.objectives import A2CLoss
 from torchrl.objectives.value.functional import vtrace_advantage_estimate
 
 from freamer_rl.errors import CheckpointError
+from freamer_rl.machinery.shaping import SHAPED_REWARD, RewardShaper, env_transforms
 from freamer_rl.run.loop import resolve_run_dir
 from freamer_rl.trainers.baselines.common import (
     STRUCTURAL,
@@ -89,7 +97,16 @@ class ImpalaTrainer(ActorCriticRunLoop):
         event_dims = len(self.actor.spec["action"].shape) if self.actor.spec is not None else 0
         self.stamp = TensorDictModule(PolicyVersion(event_dims), in_keys=["action"], out_keys=[VERSION_KEY])
         self.acting_policy = TensorDictSequential(self.net.get_policy_operator(), self.stamp)
+        # the PPO baseline's shaping: V-trace then reads ("next", "shaped_reward"), success stays the env reward's
+        self.shaper = RewardShaper(cfg, [], 0, 0, self.device)
+        self.reward_key = ("next", SHAPED_REWARD if self.shaper.active else "reward")
         self._start(resume)
+
+    def _env_transforms(self) -> list:
+        return [*env_transforms(self.cfg), *super()._env_transforms()]
+
+    def _model_state(self) -> dict[str, Any]:
+        return {**super()._model_state(), "shaping": self.shaper.state_dict()}
 
     @property
     def frames_per_batch(self) -> int:
@@ -109,6 +126,7 @@ class ImpalaTrainer(ActorCriticRunLoop):
                 f"impala.optimizer={self.cfg.impala.optimizer}; resume with the same optimizer"
             )
         super()._load_model_state(ckpt, path)
+        self.shaper.load_state_dict(ckpt.get("shaping", {}))
 
     def _after_open(self, ckpt_path: Path | None) -> None:
         super()._after_open(ckpt_path)
@@ -118,7 +136,8 @@ class ImpalaTrainer(ActorCriticRunLoop):
         """V-trace of one batch ``[*B, T]`` (time last) under the current weights, without gradients.
 
         Returns ``(advantage [*B, T, 1], value_target [*B, T, 1], rho [*B, T, 1])``, ``rho = pi(a|x) / mu(a|x)``
-        unclipped (``mu``: the stored ``action_log_prob`` ``[*B, T]``).
+        unclipped (``mu``: the stored ``action_log_prob`` ``[*B, T]``). The reward is ``self.reward_key``: the
+        shaped one when the ``shaping`` section turns a term on (written by :meth:`_learn` first), else the env's.
         """
         s = self.cfg.impala
         keys = list(self.cfg.network.observation_keys)
@@ -135,7 +154,7 @@ class ImpalaTrainer(ActorCriticRunLoop):
                 log_mu,
                 value,
                 next_value,
-                nxt["reward"],
+                data.get(self.reward_key),
                 nxt["done"],
                 nxt["terminated"],
                 rho_thresh=s.rho_clip,
@@ -146,6 +165,7 @@ class ImpalaTrainer(ActorCriticRunLoop):
 
     def _learn(self, data: TensorDictBase) -> dict[str, float]:
         self._current_lr()
+        shaping = self.shaper(data, self.stats.success_rate) if self.shaper.active else {}
         adv, target, rho = self.vtrace(data)
         # rho_clipped: ratios clipped by more than float noise (on-policy ratios are 1 +- 1e-6)
         clipped = rho > self.cfg.impala.rho_clip * (1 + 1e-4)
@@ -156,7 +176,7 @@ class ImpalaTrainer(ActorCriticRunLoop):
         splits = torch.randperm(flat.numel(), device=flat.device).chunk(self.cfg.impala.minibatches)
         out = self._minibatch_steps(flat[idx] for idx in splits)
         self.stamp.module.version.fill_(self.batches + 1)  # the weights update_policy_weights_() sends next
-        return {**out, **{k: float(v) for k, v in diag.items()}}
+        return {**shaping, **out, **{k: float(v) for k, v in diag.items()}}
 
 
 def train(cfg: ImpalaConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:

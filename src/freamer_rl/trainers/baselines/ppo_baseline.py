@@ -13,6 +13,19 @@ FreamerV1-only losses do not. MiniGrid renders ``pixels`` only when ``network.ob
 ``shaping`` section works as FreamerV1's (:class:`~freamer_rl.machinery.shaping.RewardShaper`: language reward,
 novelty bonus, time penalty, adaptive decay), so a comparison can give both sides the same shaping.
 
+The ``success_buffer`` section works as FreamerV1's too (paper App. G.3,
+:class:`~freamer_rl.machinery.success_buffer.SuccessReplay` on the network's ``common`` / actor / critic parts):
+after the epochs on a batch, the ``ppo.sequence_length`` sequences holding steps of episodes that ended in success
+(judged on the env reward by the adapter's rule) go into a FIFO; every minibatch then gets ``success_buffer.mix`` of
+its sequences from it, corrected for the current policy (V-trace targets, PPO's ratio re-centred on ``pi_k``, each
+step weighted by ``min(rho_clip, pi_k / mu)``), and ClipPPOLoss runs with ``reduction="none"`` reduced by those
+weights. With the buffer on, the feed-forward kinds train on the recurrent kinds' layout too: shuffled
+``[n, ppo.sequence_length]`` sequences instead of single steps, because V-trace needs each replayed step's successor
+value ``V(s_{t+1})``, which a sequence holds at ``t + 1`` (storing single steps would mean storing and re-encoding
+every next observation). The epochs still see every collected step once each. As FreamerV1's, the buffer is not in
+the checkpoint: a resumed run refills it from its next successes. With the buffer off nothing changes (single-step
+minibatches for mlp / cnn, the same numbers).
+
     freamer-rl train recipes/baselines/ppo_mlp_n2s4.yaml run.seed=1
     freamer-rl train recipes/baselines/ppo_lstm_n2s4.yaml run.seed=1
     freamer-rl train recipes/baselines/ppo_cnn_crafter.yaml
@@ -30,6 +43,7 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives.value import GAE
 
 from freamer_rl.machinery.shaping import SHAPED_REWARD, RewardShaper, env_transforms
+from freamer_rl.machinery.success_buffer import ReplayModules, SuccessReplay
 from freamer_rl.run.loop import resolve_run_dir
 from freamer_rl.run.sequences import split_sequences
 from freamer_rl.trainers.baselines.common import (
@@ -69,14 +83,16 @@ def sequence_minibatches(
 
 class PPOBaselineTrainer(ActorCriticRunLoop):
     """``PPOBaselineTrainer(cfg, run_dir).train()``: collect, GAE, ClipPPOLoss on shuffled single-step minibatches
-    (feed-forward kinds) or on shuffled ``[n, ppo.sequence_length]`` sequences (``*_lstm`` kinds)."""
+    (feed-forward kinds) or on shuffled ``[n, ppo.sequence_length]`` sequences (``*_lstm`` kinds, and every kind
+    with ``success_buffer.enabled``, whose replayed sequences are mixed into each minibatch)."""
 
     trainer_name = "ppo_baseline"
 
     def __init__(self, cfg: PPOBaselineConfig, run_dir: str | Path, *, resume: bool = True) -> None:
         super().__init__(cfg, run_dir)
         p = cfg.ppo
-        self.loss = clip_ppo_loss(self.actor, self.critic, p)
+        # per-step losses with the success buffer, weighted by its truncated importance weights (App. G.3)
+        self.loss = clip_ppo_loss(self.actor, self.critic, p, reduction="none" if cfg.success_buffer.enabled else None)
         self.recurrent = is_recurrent(self.net)
         # recurrent: GAE runs the value network in recurrent mode over the [*B, T] batch (root and "next" in turn,
         # not under vmap), each row from its stored LSTM state at t = 0 and split wherever is_init starts an episode
@@ -89,6 +105,9 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         self.shaper = RewardShaper(cfg, [], 0, 0, self.device)
         if self.shaper.active:
             self.gae.set_keys(reward=SHAPED_REWARD)
+        # App. G.3, as FreamerV1's (None when off); it replays the reward GAE reads, shaped or not
+        parts = ReplayModules(self.common, self.actor, self.critic)
+        self.replay = SuccessReplay.from_config(cfg, parts, self.device, ("next", self.gae.tensor_keys.reward))
         self._start(resume)
 
     def _env_transforms(self) -> list:
@@ -111,13 +130,16 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         shaping = self.shaper(data, self.stats.success_rate) if self.shaper.active else {}
         with torch.no_grad(), set_recurrent_mode(self.recurrent):
             data = self.gae(data)
-        if self.recurrent:
+        if self.recurrent or self.replay is not None:  # replayed steps need their successors: sequences
             minibatches = sequence_minibatches(data, p.sequence_length, p.minibatch_size, p.epochs)
         else:
             flat = data.exclude("next").reshape(-1)
             epochs = (torch.randperm(flat.numel(), device=flat.device).split(p.minibatch_size) for _ in range(p.epochs))
             minibatches = (flat[idx] for epoch in epochs for idx in epoch)
-        return {**shaping, **self._minibatch_steps(minibatches)}
+        out = {**shaping, **self._minibatch_steps(minibatches)}
+        if self.replay is not None:  # after the epochs: a batch's own successes are replayed from the next
+            out["success_buffer_size"] = float(self.replay.store(data))
+        return out
 
 
 def train(cfg: PPOBaselineConfig, run_dir: str | Path | None = None, *, resume: bool = True) -> dict[str, Any]:
