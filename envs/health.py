@@ -67,15 +67,20 @@ subject's mean IMU vector for that activity (``level = 0`` shows a motionless su
 
 Seeding: ``set_seed(s)`` / ``seed=s`` fixes all randomness of the env (subject/start draws, heart-rate noise, IMU
 window draws); the synthetic data itself is fixed by ``data_seed``.
+
+Planning (:class:`freamer_rl.health.oracle.OraclePlanner`): ``snapshot()`` / ``restore(state, index)`` copy the whole
+simulator state, ``planning_copy(n)`` is a detached env over the same data; an optional ``"hr_noise"`` ``[B]`` entry
+next to the action replaces the step's ``N(0, 1)`` draw (common random numbers). Without it nothing changes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import logging
 import math
 import types
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -182,6 +187,7 @@ class HealthEnv(EnvBase):
         self.reward_weights = weights
         self.dyn = dynamics or HealthDynamics()
         self.fp = feature_params or HRFeatureParams()
+        self._tables = tables  # kept for planning_copy
         self.subjects = tables.subjects
         self.rate_hz = tables.rate_hz
         self.dt = 1.0 / tables.rate_hz
@@ -411,7 +417,13 @@ class HealthEnv(EnvBase):
         # 2-4. physiology over [t, t + dt): first-order heart-rate lag, fatigue, HRV, rate of change
         met_eff = (self._met[self._effective_activity()] - 1.0) * st.level
         hr_ss = st.hr_rest + st.gain * met_eff + st.drift * st.fatigue
-        noise = torch.randn(B, generator=self._rng, device=dev)
+        noise = tensordict.get("hr_noise", None)  # planning with common random numbers (freamer_rl.health.oracle)
+        if noise is None:
+            noise = torch.randn(B, generator=self._rng, device=dev)
+        elif noise.shape != (B,):
+            raise ValueError(
+                f"hr_noise: expected shape ({B},) (one N(0, 1) draw per element), got {tuple(noise.shape)}"
+            )
         hr = (hr_before + st.alpha * (hr_ss - hr_before) + self._noise_scale * noise).clamp(dyn.hr_min, dyn.hr_clip_max)
         e = exertion(hr, st.hr_rest, p)
         st.fatigue = fatigue_update(st.fatigue, e, dt, p)
@@ -453,6 +465,48 @@ class HealthEnv(EnvBase):
         out["truncated"] = truncated[:, None]
         out["done"] = (terminated | truncated)[:, None]
         return self._to_td(out)
+
+    # planning seam (freamer_rl.health.oracle): the whole simulator state is the [B] tensors of self._st + self._rng
+    def snapshot(self) -> dict[str, Any]:
+        """Copies of the simulator state: every per-element field (``[B]`` tensors) and ``"rng_state"``."""
+        return {**{k: v.clone() for k, v in vars(self._st).items()}, "rng_state": self._rng.get_state()}
+
+    def restore(self, state: Mapping[str, Any], index: torch.Tensor | None = None) -> None:
+        """Load a :meth:`snapshot` (of this env, or of another over the same data): element ``i`` takes row
+        ``index[i]`` of every field (int64 ``[B]``; ``None``: row ``i``, and the generator state is restored too)."""
+        missing = sorted(set(vars(self._st)) - set(state))
+        if missing:
+            raise KeyError(f"restore: state lacks {missing}")
+        if index is not None and (index.dtype != torch.int64 or tuple(index.shape) != (self.B,)):
+            raise ValueError(
+                f"restore: index must be int64 of shape ({self.B},), got {index.dtype} {tuple(index.shape)}"
+            )
+        new = {}
+        for name, old in vars(self._st).items():  # every field checked before any is replaced
+            value = state[name].to(self.device)
+            new[name] = value = value.clone() if index is None else value[index]
+            if value.shape != old.shape or value.dtype != old.dtype:
+                raise ValueError(
+                    f"restore: {name!r} must be {old.dtype} {tuple(old.shape)}, got {value.dtype} {tuple(value.shape)}"
+                )
+        vars(self._st).update(new)
+        if index is None and "rng_state" in state:
+            self._rng.set_state(state["rng_state"])
+
+    def planning_copy(self, batch_size: int, *, hr_noise: float | None = None, seed: int = 0) -> HealthEnv:
+        """A detached env over the same data, constants and reward (its own state and generator, seeded by
+        ``seed``), batch ``[batch_size]``; ``hr_noise`` replaces :attr:`HealthDynamics.hr_noise` (0: noise-free)."""
+        dyn = self.dyn if hr_noise is None else dataclasses.replace(self.dyn, hr_noise=float(hr_noise))
+        return HealthEnv(
+            self._tables,
+            batch_size=batch_size,
+            episode_length=self.episode_length,
+            reward_weights=self.reward_weights,
+            dynamics=dyn,
+            feature_params=self.fp,
+            seed=seed,
+            device=self.device,
+        )
 
     def _set_seed(self, seed: int | None) -> None:
         """Seed the env's generator (``None``: draw a seed from torch's global generator)."""

@@ -66,6 +66,18 @@ def test_policies_write_actions_of_the_batch_shape(batch):
     assert torch.equal(out["action"], expected)
 
 
+def test_oracle_is_registered_with_its_defaults():
+    from freamer_rl.health.oracle import ORACLE_DEFAULTS, OraclePlanner
+
+    assert "oracle" in REFERENCE_POLICIES
+    planner = make_reference_policy("oracle")
+    assert isinstance(planner, OraclePlanner)
+    assert (planner.horizon, planner.depth) == (ORACLE_DEFAULTS["horizon"], ORACLE_DEFAULTS["depth"])
+    assert [type(t).__name__ for t in planner.tails] == ["ConstantActionPolicy", "HeartRateThresholdPolicy"]
+    assert planner.num_candidates == 5**planner.depth * 2
+    assert make_reference_policy("oracle", depth=1, horizon=3, tails=("rest",)).num_candidates == 5
+
+
 def test_random_policy_is_seeded_and_covers_actions():
     td = TensorDict({}, batch_size=(500,))
     a1 = UniformRandomPolicy(seed=3)(td.clone())["action"]
@@ -89,12 +101,16 @@ def test_evaluate_reference_protocol():
     """Same episodes for every policy (env seed eval.seed); Rest never enters the danger zone; metrics are those of
     the episode ends; a rollout shorter than an episode is an error, not a silent number."""
     cfg = tiny_cfg()
-    res = {name: evaluate_reference(cfg, name) for name in REFERENCE_POLICIES}
+    small = {"oracle": {"depth": 2, "horizon": 6}}  # a smaller search than the default keeps the test fast
+    res = {
+        name: evaluate_reference(cfg, make_reference_policy(name, **small.get(name, {}))) for name in REFERENCE_POLICIES
+    }
     for m in res.values():
         assert m["episodes"] == 3 and m["length_mean"] <= 40
     assert res["rest"]["violations_mean"] == 0.0
     assert res["continue"] == evaluate_reference(cfg, "continue")  # deterministic given the env seed
     assert res["increase"]["violations_mean"] >= res["continue"]["violations_mean"]
+    assert res["oracle"]["return_mean"] >= max(m["return_mean"] for m in res.values())  # the ceiling
     from freamer_rl.health.agent import make_health_env
 
     env = make_health_env(cfg, num_envs=2, seed=0)

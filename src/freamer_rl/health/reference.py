@@ -11,20 +11,30 @@ Policies (:data:`REFERENCE_POLICIES`):
 * ``"continue"``, ``"rest"``, ``"increase"``, ``"change"``, ``"alert"``: always that action;
 * ``"random"``: uniform over the 5 actions (its own seeded generator);
 * ``"hr_threshold"``: :class:`HeartRateThresholdPolicy` -- Rest while the heart rate is above ``rest_above`` bpm
-  (default 150, 10 bpm below the danger zone), Alert above ``alert_above`` (default 185), else Continue.
+  (default 150, 10 bpm below the danger zone), Alert above ``alert_above`` (default 185), else Continue;
+* ``"oracle"``: :class:`~freamer_rl.health.oracle.OraclePlanner` -- receding-horizon lookahead on the env's own
+  simulator (privileged: it reads the env's state; the ceiling of the table).
+
+:func:`ceiling_table` evaluates several of them on the same episodes and reports each mean return with a 95 %
+bootstrap interval over the episodes and as a fraction of the oracle's (paired bootstrap: the episodes are the same
+for every policy); :func:`format_ceiling_table` renders it as markdown.
 """
 
 from __future__ import annotations
 
 import logging
+import time
+from collections.abc import Sequence
 from typing import Any
 
+import numpy as np
 import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
 from freamer_rl.health.agent import make_health_env
 from freamer_rl.health.evaluation import rollout_metrics
+from freamer_rl.health.oracle import ORACLE_DEFAULTS, OraclePlanner
 
 logger = logging.getLogger(__name__)
 
@@ -35,12 +45,20 @@ __all__ = [
     "UniformRandomPolicy",
     "HeartRateThresholdPolicy",
     "make_reference_policy",
+    "reference_rollout",
+    "episode_returns",
     "evaluate_reference",
+    "bootstrap_mean_ci",
+    "CEILING_POLICIES",
+    "ceiling_table",
+    "format_ceiling_table",
 ]
 
 #: action names of the health env, in index order (``freamer_rl_envs.health.HEALTH_ACTIONS``; the library does not import envs)
 ACTION_NAMES: tuple[str, ...] = ("continue", "rest", "increase", "change", "alert")
-REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold")
+REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold", "oracle")
+#: the rows of the ceiling table (issue 22), the oracle first: every other row is read as a fraction of it
+CEILING_POLICIES: tuple[str, ...] = ("oracle", "hr_threshold", "continue", "rest", "random")
 
 
 class ConstantActionPolicy(TensorDictModuleBase):
@@ -107,29 +125,145 @@ class HeartRateThresholdPolicy(TensorDictModuleBase):
 
 
 def make_reference_policy(name: str, *, seed: int = 0, **kwargs: Any) -> TensorDictModuleBase:
-    """One of :data:`REFERENCE_POLICIES` (``kwargs`` go to :class:`HeartRateThresholdPolicy`)."""
+    """One of :data:`REFERENCE_POLICIES`. ``kwargs`` go to :class:`HeartRateThresholdPolicy` (``"hr_threshold"``)
+    or to :class:`~freamer_rl.health.oracle.OraclePlanner` (``"oracle"``: ``horizon``, ``depth``,
+    ``noise_samples``, and ``tails``, names of reference policies, default ``("continue", "hr_threshold")``)."""
     if name in ACTION_NAMES:
         return ConstantActionPolicy(ACTION_NAMES.index(name))
     if name == "random":
         return UniformRandomPolicy(seed=seed)
     if name == "hr_threshold":
         return HeartRateThresholdPolicy(**kwargs)
+    if name == "oracle":
+        options = {**ORACLE_DEFAULTS, "seed": seed, **kwargs}
+        tails = options.pop("tails", ("continue", "hr_threshold"))
+        if "oracle" in tails:
+            raise ValueError("oracle: tails must be fixed reference policies, not 'oracle'")
+        modules = [make_reference_policy(t, seed=seed) for t in tails]
+        return OraclePlanner(modules, num_actions=len(ACTION_NAMES), **options)
     raise ValueError(f"unknown reference policy {name!r}; known: {', '.join(REFERENCE_POLICIES)}")
 
 
 @torch.no_grad()
+def reference_rollout(
+    cfg: Any, policy: str | TensorDictModuleBase, *, num_envs: int | None = None, seed: int | None = None
+) -> TensorDictBase:
+    """The evaluation protocol's rollout ``[num_envs, env.episode_length]`` of a reference policy: a fresh env of
+    ``num_envs`` (default ``eval.num_envs``) episodes from env ``seed`` (default ``eval.seed``), as
+    :func:`freamer_rl.health.evaluation.evaluate_policy` rolls a trained policy. An
+    :class:`~freamer_rl.health.oracle.OraclePlanner` is bound to that env for the rollout."""
+    module = make_reference_policy(policy) if isinstance(policy, str) else policy
+    n = num_envs or cfg.eval.num_envs
+    env = make_health_env(cfg, num_envs=n, seed=cfg.eval.seed if seed is None else seed)
+    if isinstance(module, OraclePlanner):
+        module.bind(env)
+    try:
+        return env.rollout(cfg.env.episode_length, module, break_when_any_done=False)
+    finally:
+        if isinstance(module, OraclePlanner):
+            module.bind(None)
+        env.close()
+
+
+def episode_returns(traj: TensorDictBase) -> torch.Tensor:
+    """float32 ``[n]``: each env's episode return, read at its first ``("next", "done")`` (as
+    :func:`~freamer_rl.health.evaluation.rollout_metrics`, which also checks that every env finished)."""
+    rollout_metrics(traj)  # the same checks and the same reading
+    done = traj.get(("next", "done")).reshape(traj.shape[0], -1)
+    first = done.float().argmax(dim=-1)
+    return traj.get(("next", "episode", "return"))[torch.arange(traj.shape[0]), first].float().reshape(-1)
+
+
 def evaluate_reference(
     cfg: Any, policy: str | TensorDictModuleBase, *, num_envs: int | None = None, seed: int | None = None
 ) -> dict[str, float]:
     """Real-env metrics of a reference policy under the evaluation protocol of a
-    :class:`~freamer_rl.health.config.HealthConfig` ``cfg`` (``num_envs`` default ``eval.num_envs``, env ``seed``
-    default ``eval.seed``): ``return_mean``, ``return_std``, ``violations_mean``, ``length_mean``, ``episodes``."""
+    :class:`~freamer_rl.health.config.HealthConfig` ``cfg`` (:func:`reference_rollout`): ``return_mean``,
+    ``return_std``, ``violations_mean``, ``length_mean``, ``episodes``."""
+    return rollout_metrics(reference_rollout(cfg, policy, num_envs=num_envs, seed=seed))
 
-    module = make_reference_policy(policy) if isinstance(policy, str) else policy
-    n = num_envs or cfg.eval.num_envs
-    env = make_health_env(cfg, num_envs=n, seed=cfg.eval.seed if seed is None else seed)
-    try:
-        traj = env.rollout(cfg.env.episode_length, module, break_when_any_done=False)
-    finally:
-        env.close()
-    return rollout_metrics(traj)
+
+def bootstrap_mean_ci(
+    values: Sequence[float] | np.ndarray,
+    *,
+    reference: Sequence[float] | np.ndarray | None = None,
+    resamples: int = 10_000,
+    confidence: float = 0.95,
+    seed: int = 0,
+) -> tuple[float, float, float]:
+    """Percentile-bootstrap ``(estimate, low, high)`` of ``mean(values)``, or, with ``reference`` (paired: the same
+    episodes), of ``mean(values) / mean(reference)``; episodes are resampled with replacement, jointly for the pair."""
+    x = np.asarray(values, dtype=np.float64)
+    y = None if reference is None else np.asarray(reference, dtype=np.float64)
+    if x.ndim != 1 or x.size == 0 or (y is not None and y.shape != x.shape):
+        raise ValueError(f"bootstrap_mean_ci: values {x.shape} and reference must be equal non-empty 1-D arrays")
+    if not 0.0 < confidence < 1.0 or resamples < 1:
+        raise ValueError(f"bootstrap_mean_ci: confidence in (0, 1) and resamples >= 1, got {confidence}, {resamples}")
+    idx = np.random.default_rng(seed).integers(0, x.size, size=(int(resamples), x.size))
+    stat = x[idx].mean(1) if y is None else x[idx].mean(1) / y[idx].mean(1)
+    estimate = float(x.mean() if y is None else x.mean() / y.mean())
+    tail = 50.0 * (1.0 - confidence)
+    low, high = np.percentile(stat, [tail, 100.0 - tail])
+    return estimate, float(low), float(high)
+
+
+def ceiling_table(
+    cfg: Any,
+    policies: Sequence[str] = CEILING_POLICIES,
+    *,
+    num_envs: int | None = None,
+    seed: int | None = None,
+    resamples: int = 10_000,
+    **oracle: Any,
+) -> list[dict[str, Any]]:
+    """The ceiling table (issue 22): every policy of ``policies`` (names of :data:`REFERENCE_POLICIES`; ``"oracle"``
+    must be among them) on the same evaluation episodes (:func:`reference_rollout`), one row each: ``policy``,
+    ``return_mean`` with its 95 % bootstrap interval ``return_low`` / ``return_high`` over the episodes,
+    ``fraction_of_oracle`` = mean / oracle's mean with a paired 95 % interval ``fraction_low`` / ``fraction_high``,
+    ``violations_mean``, ``length_mean``, ``episodes`` and ``seconds`` (wall time of the rollout). ``oracle``
+    keyword arguments go to the planner (:func:`make_reference_policy`)."""
+    if "oracle" not in policies:
+        raise ValueError(f"ceiling_table: policies must include 'oracle' (the denominator), got {list(policies)}")
+    returns: dict[str, np.ndarray] = {}
+    rows: list[dict[str, Any]] = []
+    for name in policies:
+        module = make_reference_policy(name, **(oracle if name == "oracle" else {}))
+        start = time.perf_counter()
+        traj = reference_rollout(cfg, module, num_envs=num_envs, seed=seed)
+        seconds = time.perf_counter() - start
+        metrics = rollout_metrics(traj)
+        returns[name] = episode_returns(traj).numpy()
+        mean, low, high = bootstrap_mean_ci(returns[name], resamples=resamples)
+        rows.append(
+            {
+                "policy": name,
+                "return_mean": mean,
+                "return_low": low,
+                "return_high": high,
+                "violations_mean": metrics["violations_mean"],
+                "length_mean": metrics["length_mean"],
+                "episodes": metrics["episodes"],
+                "seconds": seconds,
+            }
+        )
+        logger.info("ceiling table: %s return %.2f [%.2f, %.2f] in %.1f s", name, mean, low, high, seconds)
+    for row in rows:
+        frac, low, high = bootstrap_mean_ci(returns[row["policy"]], reference=returns["oracle"], resamples=resamples)
+        row.update(fraction_of_oracle=frac, fraction_low=low, fraction_high=high)
+    return rows
+
+
+def format_ceiling_table(rows: Sequence[dict[str, Any]]) -> str:
+    """Markdown of :func:`ceiling_table`'s rows: return mean [95 % CI], fraction of the oracle [95 % CI],
+    violations, seconds."""
+    lines = [
+        "| policy | return (95% CI) | fraction of oracle (95% CI) | violations / episode | episodes | seconds |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['policy']} | {r['return_mean']:.1f} [{r['return_low']:.1f}, {r['return_high']:.1f}] | "
+            f"{r['fraction_of_oracle']:.3f} [{r['fraction_low']:.3f}, {r['fraction_high']:.3f}] | "
+            f"{r['violations_mean']:.2f} | {r['episodes']} | {r['seconds']:.1f} |"
+        )
+    return "\n".join(lines)
