@@ -122,7 +122,8 @@ def _health_run(root: Path, label: str, seed: int, values: dict) -> RunRecord:
 
 def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
     """Table 15's columns: mean +- sample std across seeds of each summary.json metric, the encoder's parameters,
-    the reward difference to the first label."""
+    the reward difference to the first label, the reward's bootstrap interval, per-seed values and the ratio to the
+    first label with its interval."""
     returns = {"mlp": [50.0, 60.0, 64.0], "foundation": [48.0, 52.0, 53.0]}
     records = []
     for label, rets in returns.items():
@@ -152,7 +153,16 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
         f"| 11.0 +- 1.0 | 1,234 |  |" in rows["mlp"]
     )
     delta = statistics.mean(foundation) - statistics.mean(mlp)
-    assert rows["foundation"].endswith(f"| 5,678 | {delta:+.1f} |")
+    assert f"| 5,678 | {delta:+.1f} | {statistics.mean(foundation):.1f} [" in rows["foundation"]
+    assert "| 48.0 / 52.0 / 53.0 |" in rows["foundation"] and rows["mlp"].endswith("| 50.0 / 60.0 / 64.0 |  |")
+    # the reward's bootstrap interval holds the mean, and the ratio's holds the ratio of means
+    cells = rows["foundation"].strip("| ").split(" | ")
+    low, high = (float(v) for v in cells[-3].split("[")[1].rstrip("]").split(", "))
+    assert low <= statistics.mean(foundation) <= high and low >= 48.0 and high <= 53.0
+    ratio, bounds = cells[-1].split(" [")
+    r_low, r_high = (float(v) for v in bounds.rstrip("]").split(", "))
+    assert float(ratio) == round(statistics.mean(foundation) / statistics.mean(mlp), 2)
+    assert r_low <= float(ratio) <= r_high and r_low >= 48.0 / 64.0 and r_high <= 53.0 / 50.0
     header = (tmp_path / "runs.csv").read_text().splitlines()[0].split(",")
     assert header[-7:] == [
         "eval_return_mean",

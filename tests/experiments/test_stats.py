@@ -1,9 +1,17 @@
 """Suite statistics (freamer_rl.experiments.stats) against closed forms and scipy where it has the same estimator."""
 
+import math
+
 import numpy as np
 import pytest
 
-from freamer_rl.experiments.stats import iqm, iqm_ci, probability_of_improvement, stratified_bootstrap_ci
+from freamer_rl.experiments.stats import (
+    iqm,
+    iqm_ci,
+    mean_ratio_ci,
+    probability_of_improvement,
+    stratified_bootstrap_ci,
+)
 
 
 @pytest.mark.parametrize(
@@ -60,3 +68,12 @@ def test_probability_of_improvement_closed_forms():
 def test_empty_task_is_refused():
     with pytest.raises(ValueError, match="every task needs at least one seed"):
         iqm_ci({"t": []})
+
+
+def test_mean_ratio_ci_is_exact_for_constant_arms_and_bounded_by_the_extremes():
+    assert mean_ratio_ci([2.0, 2.0, 2.0], [4.0, 4.0]) == (0.5, 0.5, 0.5)
+    point, low, high = mean_ratio_ci([48.0, 52.0, 53.0], [50.0, 60.0, 64.0])
+    assert point == pytest.approx(51.0 / 58.0)
+    # a replicate's means stay within each arm's extremes, so its ratio does too
+    assert 48.0 / 64.0 <= low < point < high <= 53.0 / 50.0
+    assert all(math.isnan(v) for v in mean_ratio_ci([1.0], [0.0])[1:])  # no finite replicate: NaN bounds

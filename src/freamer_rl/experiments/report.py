@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from freamer_rl.experiments.stats import iqm_ci
+from freamer_rl.experiments.stats import iqm_ci, mean_ratio_ci, stratified_bootstrap_ci
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.metrics import SUCCESS_LEVELS
 from freamer_rl.run.rundir import write_rows_csv
@@ -367,6 +367,11 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             vals = [float(r[key]) for r in done if not _missing(r.get(key))]
             row[f"{key}_mean"] = statistics.mean(vals) if vals else None
             row[f"{key}_std"] = statistics.stdev(vals) if len(vals) > 1 else (0.0 if vals else None)
+        rewards = [float(r["eval_return_mean"]) for r in done if not _missing(r.get("eval_return_mean"))]
+        row["_eval_return_values"] = rewards  # per seed, for Table 15's ratios (private: not a CSV column)
+        ci = stratified_bootstrap_ci({env: rewards}, np.mean) if rewards else (None, None, None)
+        row["eval_return_ci_low"], row["eval_return_ci_high"] = ci[1], ci[2]
+        row["eval_return_per_seed"] = " / ".join(f"{v:.1f}" for v in rewards)
         targets = {r.get("return_target") for r in done} - {None}
         row["return_target"] = targets.pop() if len(targets) == 1 else None  # mixed targets: no column
         for key in (*LEVEL_KEYS, "frames_to_return"):
@@ -420,6 +425,16 @@ def _to95(row: dict, key: str) -> str:
     return f"{head} [{row[f'{key}_per_seed']}]"
 
 
+def _health_reward_cells(row: dict, first: dict) -> list[str]:
+    """Table 15's reward mean [CI], per-seed values and ratio to ``first`` [CI]."""
+    mean, low, high = row["eval_return_mean_mean"], row["eval_return_ci_low"], row["eval_return_ci_high"]
+    cells = [f"{mean:.1f} [{low:.1f}, {high:.1f}]", row["eval_return_per_seed"]]
+    if row is first:
+        return [*cells, ""]
+    ratio, r_low, r_high = mean_ratio_ci(row["_eval_return_values"], first["_eval_return_values"])
+    return [*cells, f"{ratio:.2f} [{r_low:.2f}, {r_high:.2f}]"]
+
+
 def health_markdown(rows: list[dict]) -> list[str]:
     """The Table 15 section of summary.md (``[]`` when no run has the health evaluation): per label x env, each
     :data:`HEALTH_METRICS` value as mean +- sample std across the seeds done, the encoder's parameters, and the
@@ -434,6 +449,9 @@ def health_markdown(rows: list[dict]) -> list[str]:
         *(col for _, col, _ in HEALTH_METRICS),
         "params (encoder)",
         f"reward vs {first['label']}",
+        "reward mean [95% CI]",
+        "reward per seed",
+        f"reward / {first['label']} [95% CI]",
     ]
     lines = [
         "",
@@ -441,7 +459,9 @@ def health_markdown(rows: list[dict]) -> list[str]:
         "",
         "Reward: real-env evaluation return per episode; Violations: steps with HR > 160 bpm per episode; MSE: "
         "reconstruction MSE per feature (raw units, held-out episodes); Horizon: open-loop imagined steps before "
-        "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done.",
+        "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done; the reward's "
+        "mean with a 95% bootstrap interval over the seeds, each seed's value, and the ratio of mean rewards to the "
+        "first label's with a 95% bootstrap interval (each arm's seeds resampled on their own).",
         "",
         "| " + " | ".join(head) + " |",
         "|---|" + "---:|" * (len(head) - 1),
@@ -456,6 +476,7 @@ def health_markdown(rows: list[dict]) -> list[str]:
         cells.append("" if params is None else f"{params:,.0f}")
         delta = r["eval_return_mean_mean"] - first["eval_return_mean_mean"]
         cells.append("" if r is first else f"{delta:+.1f}")
+        cells += _health_reward_cells(r, first)
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -575,7 +596,7 @@ def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict
     health += ["params_encoder"] if health else []
     write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS[:-2] + health + RUN_FIELDS[-2:])
     rows = summary_rows(results)
-    write_rows_csv(output / "summary.csv", rows)
+    write_rows_csv(output / "summary.csv", [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
     atomic_write_text(output / "summary.md", summary_markdown(name, rows, results))
     curves = _curve_rows(results)
     write_rows_csv(output / "curves.csv", curves, fields=list(curves[0]) if curves else None)

@@ -16,7 +16,7 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["iqm", "stratified_bootstrap_ci", "iqm_ci", "probability_of_improvement"]
+__all__ = ["iqm", "stratified_bootstrap_ci", "iqm_ci", "mean_ratio_ci", "probability_of_improvement"]
 
 Scores = Mapping[str, Sequence[float]]
 
@@ -95,6 +95,29 @@ def probability_of_improvement(
                 for t in tasks
             ]
         )
+    tail = 100 * (1 - confidence) / 2
+    low, high = np.percentile(values, [tail, 100 - tail])
+    return point, float(low), float(high)
+
+
+def mean_ratio_ci(
+    a: Sequence[float], b: Sequence[float], *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float, float]:
+    """``(mean(a) / mean(b), low, high)``: the ratio of two arms' mean scores (e.g. Table 15's Foundation / MLP
+    reward) with a percentile-bootstrap interval, each arm's seeds resampled on their own. NaN bounds where a
+    replicate's ``mean(b)`` is 0."""
+    x, y = np.asarray(a, dtype=float).reshape(-1), np.asarray(b, dtype=float).reshape(-1)
+    if not x.size or not y.size:
+        raise ValueError(f"mean_ratio_ci: both arms need a value (got {x.size} and {y.size})")
+    rng = np.random.default_rng(seed)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        point = float(x.mean() / y.mean())
+        values = np.array(
+            [x[rng.integers(0, x.size, x.size)].mean() / y[rng.integers(0, y.size, y.size)].mean() for _ in range(reps)]
+        )
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return point, float("nan"), float("nan")
     tail = 100 * (1 - confidence) / 2
     low, high = np.percentile(values, [tail, 100 - tail])
     return point, float(low), float(high)
