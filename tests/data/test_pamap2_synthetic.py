@@ -71,3 +71,27 @@ def test_features_of_seeded_recording_match_the_original(case):
     assert float(f.imu.astype(np.float64).sum()) == pytest.approx(imu_sum, rel=1e-10)
     assert float(h.sum()) == pytest.approx(hr_sum, rel=1e-10)
     assert float((h * np.arange(1, 17)).sum()) == pytest.approx(hr_weighted, rel=1e-10)
+
+
+def test_lower_row_rate_samples_the_same_session():
+    """``row_rate_hz`` keeps the timeline and physiology of the seed and samples the same models more sparsely."""
+    full = synthetic_recording(103, duration_s=900.0, seed=5)
+    sparse = synthetic_recording(103, duration_s=900.0, seed=5, row_rate_hz=1.0)
+    assert len(full) == 90_000 and len(sparse) == 900
+    assert np.diff(sparse.timestamp) == pytest.approx(np.ones(899))
+    assert sparse.info["segments"] == full.info["segments"] and sparse.info["row_rate_hz"] == 1.0
+    assert (sparse.info["hr_rest"], sparse.info["tau_hr"]) == (full.info["hr_rest"], full.info["tau_hr"])
+    assert not np.isnan(sparse.heart_rate).any()  # below ~9 Hz every row has a heart rate
+    # the same activity at the same second, and a heart rate that follows the same lag model (noise differs)
+    assert (sparse.activity == full.activity[::100]).mean() > 0.98  # rows at the segment edges may round apart
+    hr_full = pamap2_features(full, rate_hz=0.2).heart_rate
+    hr_sparse = pamap2_features(sparse, rate_hz=0.2).heart_rate
+    assert hr_full.shape == hr_sparse.shape == (180,)
+    assert abs(float(hr_full.mean() - hr_sparse.mean())) < 2.0
+    assert np.corrcoef(hr_full, hr_sparse)[0, 1] > 0.9
+
+
+@pytest.mark.parametrize("rate", [0.0, 3.0, 150.0])
+def test_row_rate_must_divide_100(rate):
+    with pytest.raises(ValueError, match="row_rate_hz"):
+        synthetic_recording(101, duration_s=10.0, row_rate_hz=rate)

@@ -16,6 +16,7 @@ from freamer_rl.world_model import (
     detect_anomalies,
     plot_anomaly_timeline,
 )
+from freamer_rl.world_model.anomaly import anomaly_statistic
 
 OBS_DIMS = {"imu": 6, "hr_features": 3}
 N_ACT = 3
@@ -211,3 +212,48 @@ def test_transform_works_with_every_health_encoder(kind):
         offline = wm.episode_kl(traj)
     torch.testing.assert_close(offline[..., 0], traj["kl"][..., 0, 0], rtol=1e-4, atol=1e-5)
     torch.testing.assert_close(offline[..., 1:], traj["next", "kl"][..., 0], rtol=1e-4, atol=1e-5)
+
+
+def test_ema_statistic_halflife_closed_form():
+    """With ``statistic="ema"`` a value's weight halves every ``halflife`` steps: after a unit step from 0 the mean
+    is exactly ``1 - 2^(-n / h)`` n steps later."""
+    h = 8.0
+    det = KLAnomalyDetector(warmup=2, statistic="ema", halflife=h)
+    assert det.momentum == pytest.approx(1 - 0.5 ** (1 / h)) and det.statistic == "ema"
+    det.update(torch.tensor(0.0))
+    for n in range(1, 25):
+        det.update(torch.tensor(1.0))
+        assert det.mean.item() == pytest.approx(1 - 0.5 ** (n / h), rel=1e-5)
+    assert KLAnomalyDetector(statistic="ema").halflife == 720.0
+    for kwargs, field in (
+        ({"statistic": "median"}, "statistic"),
+        ({"statistic": "ema", "halflife": 0.0}, "halflife"),
+        ({"halflife": 5.0}, "halflife"),
+        ({"statistic": "ema", "momentum": 0.1}, "momentum"),
+    ):
+        with pytest.raises(ValueError, match=field):
+            KLAnomalyDetector(**kwargs)
+
+
+@pytest.mark.parametrize("statistic", ["running", "ema"])
+def test_excluded_steps_are_neither_flagged_nor_counted(statistic):
+    """``include=False`` steps (e.g. a filter reset) leave the statistics as they were and are never flagged; the
+    z-score is flagged exactly where it exceeds k."""
+    kl = stationary(200)
+    kl[[60, 120]] += 5.0
+    include = torch.ones(200, dtype=torch.bool)
+    include[60] = False
+    hl = 50.0 if statistic == "ema" else None
+    out = anomaly_statistic(kl, warmup=20, statistic=statistic, halflife=hl, include=include)
+    assert not out["flags"][60] and out["flags"][120]
+    # the excluded spike changed nothing: the same stream without it gives the same statistics afterwards
+    dropped = torch.cat([kl[:60], kl[61:]])
+    ref = anomaly_statistic(dropped, warmup=20, statistic=statistic, halflife=hl)
+    torch.testing.assert_close(out["mean"][61:], ref["mean"][60:])
+    torch.testing.assert_close(out["flags"][61:], ref["flags"][60:])
+    z = out["z"]
+    assert torch.isnan(z[:20]).all() and torch.isnan(z[60])
+    ok = torch.isfinite(z)
+    assert torch.equal(out["flags"][ok], z[ok] > 2.0)
+    flags, _ = detect_anomalies(kl, warmup=20, statistic=statistic, halflife=hl, include=include)
+    assert torch.equal(out["flags"], flags)

@@ -28,7 +28,7 @@ from freamer_rl.data.pamap2_format import (
     Pamap2Recording,
 )
 
-__all__ = ["synthetic_recording", "write_synthetic_pamap2"]
+__all__ = ["synthetic_recording", "write_recording", "write_synthetic_pamap2"]
 
 _PROTOCOL_TIMELINE: tuple[tuple[int, float], ...] = (
     (1, 180),
@@ -107,8 +107,14 @@ def synthetic_recording(
     duration_s: float = 600.0,
     seed: int = 0,
     activities: Iterable[tuple[int, float]] | None = None,
+    row_rate_hz: float = SAMPLE_RATE_HZ,
 ) -> Pamap2Recording:
     """A synthetic PAMAP2 protocol session at 100 Hz, in memory (what :func:`write_synthetic_pamap2` writes).
+
+    ``row_rate_hz`` (default 100 Hz, the pinned numbers) gives fewer rows per second for long scenarios (48 h: 17.3 M
+    rows, ~8 GB of text at 100 Hz; 172,800 at 1 Hz); it must divide 100. The same models are sampled at the row
+    times (heart rate on every row below ~9 Hz, lag integrated at ~10 Hz or the row rate); the feature code reads
+    the row period from the timestamps, so any step rate up to ``row_rate_hz`` works.
 
     Statistics:
 
@@ -130,6 +136,7 @@ def synthetic_recording(
     """
     if not duration_s > 1.0:
         raise ValueError(f"duration_s: expected more than 1 s, got {duration_s!r}")
+    rate = _check_row_rate(row_rate_hz)
     # every random draw below comes from this one generator, in a fixed order (the output is pinned by tests)
     rng = np.random.default_rng([int(seed), int(subject)])
     hr_rest = float(rng.uniform(58.0, 78.0))
@@ -145,12 +152,12 @@ def synthetic_recording(
         bad = [a for a, _ in segs if a not in ACTIVITY_NAMES]
         if bad:
             raise ValueError(f"activities: unknown activity ids {bad} (valid: {sorted(ACTIVITY_NAMES)})")
-    t_rows = int(round(duration_s * SAMPLE_RATE_HZ))
-    activity, seg_jitter = _activity_rows(segs, t_rows, rng)
-    heart_rate, fatigue = _synthetic_heart_rate(activity, seg_jitter, (hr_rest, gain, tau_hr, drift), rng)
-    imu = _synthetic_imus(activity, seg_jitter, amp_scale, fatigue, rng)
+    t_rows = int(round(duration_s * rate))
+    activity, seg_jitter = _activity_rows(segs, t_rows, rng, rate)
+    heart_rate, fatigue = _synthetic_heart_rate(activity, seg_jitter, (hr_rest, gain, tau_hr, drift), rng, rate)
+    imu = _synthetic_imus(activity, seg_jitter, amp_scale, fatigue, rng, rate)
 
-    dt = 1.0 / SAMPLE_RATE_HZ
+    dt = 1.0 / rate
     t_start = float(np.round(rng.uniform(5.0, 10.0), 2))
     timestamp = np.round(t_start + np.arange(t_rows) * dt, 2)
     info = {
@@ -161,6 +168,7 @@ def synthetic_recording(
         "tau_hr": tau_hr,
         "fatigue_drift": drift,
         "segments": segs,
+        "row_rate_hz": rate,
     }
     return Pamap2Recording(
         timestamp=timestamp,
@@ -173,11 +181,20 @@ def synthetic_recording(
     )
 
 
+def _check_row_rate(row_rate_hz: float) -> float:
+    """``row_rate_hz`` as a float, checked: in (0, 100] Hz and dividing 100 (rows on the 10 ms grid)."""
+    rate = float(row_rate_hz)
+    per = SAMPLE_RATE_HZ / rate if rate > 0 else math.inf
+    if not (0 < rate <= SAMPLE_RATE_HZ) or abs(per - round(per)) > 1e-9:
+        raise ValueError(f"row_rate_hz: expected a rate in (0, 100] Hz that divides 100, got {row_rate_hz!r}")
+    return rate
+
+
 def _activity_rows(
-    segs: list[tuple[int, float]], t_rows: int, rng: np.random.Generator
+    segs: list[tuple[int, float]], t_rows: int, rng: np.random.Generator, rate: float = SAMPLE_RATE_HZ
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-row activity id int64 ``[T]`` and per-segment effort jitter float64 ``[T]`` (one draw per segment)."""
-    bounds = np.round(np.cumsum([d for _, d in segs]) * SAMPLE_RATE_HZ).astype(np.int64)
+    bounds = np.round(np.cumsum([d for _, d in segs]) * rate).astype(np.int64)
     # rows past the last segment's end (rounding) stay in the last segment
     seg_of_row = np.minimum(np.searchsorted(bounds, np.arange(t_rows), side="right"), len(segs) - 1)
     activity = np.array([a for a, _ in segs], dtype=np.int64)[seg_of_row]
@@ -191,16 +208,17 @@ def _synthetic_heart_rate(
     seg_jitter: np.ndarray,
     physiology: tuple[float, float, float, float],
     rng: np.random.Generator,
+    rate: float = SAMPLE_RATE_HZ,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Measured heart rate ``[T]`` (integer bpm on ~9 rows in 100, NaN elsewhere) and the true fatigue ``[T]``.
 
-    ``physiology`` = ``(hr_rest, gain, tau_hr, drift)``. The lag model is integrated at 10 Hz (a Python loop: 10x
-    fewer steps than at 100 Hz) and interpolated to the row rate.
+    ``physiology`` = ``(hr_rest, gain, tau_hr, drift)``. The lag model is integrated at ~10 Hz (a Python loop: 10x
+    fewer steps than at 100 Hz; at the row rate below 10 Hz) and interpolated to the row rate.
     """
     hr_rest, gain, tau_hr, drift = physiology
     t_rows = activity.shape[0]
-    dt = 1.0 / SAMPLE_RATE_HZ
-    sub = 10
+    dt = 1.0 / rate
+    sub = max(1, int(round(rate / 10.0)))
     met = _MET_TABLE[activity] * np.where(activity == 0, 1.0, seg_jitter)
     hr10, fat10 = _integrate_hr(met[::sub], dt * sub, physiology, rng)
     hr_max = HRFeatureParams().hr_max
@@ -211,7 +229,9 @@ def _synthetic_heart_rate(
     # respiratory sinus arrhythmia: strongest at rest, fading with exertion
     rsa = 2.5 * (1.0 - exert) * np.sin(2 * np.pi * 0.25 * t + rng.uniform(0, 2 * np.pi))
     hr_meas = np.round(hr_true + rsa + rng.normal(0.0, 1.0, size=t_rows))
-    gaps = rng.choice(np.array([10, 11, 11, 11, 12]), size=t_rows // 10 + 2)
+    # ~9 Hz monitor: gaps of 10-12 rows at 100 Hz, scaled to the row rate (every row below ~9 Hz)
+    gap_choices = np.maximum(1, np.round(np.array([10, 11, 11, 11, 12]) * rate / SAMPLE_RATE_HZ)).astype(np.int64)
+    gaps = rng.choice(gap_choices, size=t_rows // int(gap_choices.min()) + 2)
     hr_rows = np.cumsum(gaps) - gaps[0]
     hr_rows = hr_rows[hr_rows < t_rows]
     heart_rate = np.full(t_rows, np.nan)
@@ -265,15 +285,21 @@ def _movement_rows(activity: np.ndarray, seg_jitter: np.ndarray, amp_scale: np.n
 
 
 def _synthetic_imus(
-    activity: np.ndarray, seg_jitter: np.ndarray, amp_scale: np.ndarray, fatigue: np.ndarray, rng: np.random.Generator
+    activity: np.ndarray,
+    seg_jitter: np.ndarray,
+    amp_scale: np.ndarray,
+    fatigue: np.ndarray,
+    rng: np.random.Generator,
+    rate: float = SAMPLE_RATE_HZ,
 ) -> dict[str, np.ndarray]:
     """``{"hand", "chest", "ankle"}`` -> float64 ``[T, 17]`` in :data:`IMU_CHANNELS` order."""
     t_rows = activity.shape[0]
-    dt = 1.0 / SAMPLE_RATE_HZ
+    dt = 1.0 / rate
     mv = _movement_rows(activity, seg_jitter, amp_scale)
     phase = 2 * np.pi * np.cumsum(mv["freq"]) * dt + rng.uniform(0, 2 * np.pi)
     heading = np.cumsum(mv["turn"] * math.sqrt(dt) * rng.normal(size=t_rows)) + rng.uniform(0, 2 * np.pi)
-    temp_drift = np.cumsum(rng.normal(0, 0.002, size=t_rows // 100 + 1)).repeat(100)[:t_rows]
+    per_s = max(1, int(round(rate)))  # the temperature drifts once a second
+    temp_drift = np.cumsum(rng.normal(0, 0.002, size=t_rows // per_s + 1)).repeat(per_s)[:t_rows]
     imu: dict[str, np.ndarray] = {}
     for s, site in enumerate(IMU_SITES):
         g = mv["gdir"][mv["post_k"], s] * G  # [T, 3]
@@ -323,16 +349,32 @@ def _format_rows(arr: np.ndarray) -> str:
     return text.replace("nan", "NaN") + "\n"
 
 
+def write_recording(recording: Pamap2Recording, path: str | Path) -> Path:
+    """Write one recording as a PAMAP2 ``.dat`` file (the format of :func:`write_synthetic_pamap2`); returns the path.
+
+    Written in blocks of 100,000 rows, so a long scenario never holds its whole text in memory.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arr = recording.to_array()
+    with open(path, "w", encoding="ascii") as f:
+        for i in range(0, arr.shape[0], 100_000):
+            f.write(_format_rows(arr[i : i + 100_000]))
+    return path
+
+
 def write_synthetic_pamap2(
     folder: str | Path,
     subjects: Iterable[int] = (101, 102, 103),
     duration_s: float = 600.0,
     seed: int = 0,
+    row_rate_hz: float = SAMPLE_RATE_HZ,
 ) -> Path:
     """Write ``<folder>/Protocol/subjectNNN.dat`` files of :func:`synthetic_recording` in the PAMAP2 format.
 
     54 space-separated columns; timestamps with 2 decimals (10 ms steps); activity and heart rate as integers,
     ``NaN`` where the heart-rate monitor has no sample (~91 % of rows); IMU values with 6 significant digits.
+    ``row_rate_hz``: see :func:`synthetic_recording` (fewer rows per second for long scenarios).
 
     Returns:
         the ``Protocol`` folder.
@@ -344,6 +386,6 @@ def write_synthetic_pamap2(
     pdir = Path(folder) / "Protocol"
     pdir.mkdir(parents=True, exist_ok=True)
     for s in subjects:
-        rec = synthetic_recording(s, duration_s=duration_s, seed=seed)
-        (pdir / f"subject{s}.dat").write_text(_format_rows(rec.to_array()), encoding="ascii")
+        rec = synthetic_recording(s, duration_s=duration_s, seed=seed, row_rate_hz=row_rate_hz)
+        write_recording(rec, pdir / f"subject{s}.dat")
     return pdir

@@ -1,5 +1,17 @@
-"""The anomaly report of the health domain (paper Appendix J.5, Fig. 4): record one long real-env episode with
-the trained policy, flag KL anomalies, draw the timeline. ``freamer-rl health anomaly RUN_DIR``."""
+"""The anomaly report of the health domain (paper Appendix J.5, Fig. 4). ``freamer-rl health anomaly RUN_DIR``.
+
+* :func:`anomaly_report` -- record one long real-env episode with the trained policy, flag KL anomalies, draw the
+  timeline (no ground truth).
+* :func:`labelled_anomaly_report` -- run the trained world model's filter over a PAMAP2 recording with labelled
+  anomalies (:mod:`freamer_rl.data.anomaly_labels`), flag, score against the labels
+  (:mod:`freamer_rl.health.anomaly_scoring`) and draw the timeline with the labelled intervals.
+
+Wrap-around: the env walks through its subject's timeline with ``cursor = (cursor + 1) % length`` from a random
+start, so an env episode longer than the recording replays it from its start. The recipes' synthetic subjects are
+``env.synthetic_duration_s = 1800`` s long: a 48-hour :func:`anomaly_report` episode (34,560 steps at 0.2 Hz)
+wraps around the 360-window timeline ~96 times. :func:`labelled_anomaly_report` reads a recording generated for
+the whole scenario and filters it once from its first window: it never wraps.
+"""
 
 from __future__ import annotations
 
@@ -12,12 +24,27 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
+from freamer_rl.data import Pamap2Features, Pamap2Recording, load_pamap2_protocol, load_pamap2_subject, pamap2_features
+from freamer_rl.data.anomaly_labels import read_labels, recording_time_range
+from freamer_rl.errors import FreamerError
 from freamer_rl.health.agent import HealthAgent, env_options, load_agent, logits_net
+from freamer_rl.health.anomaly_scoring import interval_steps, score_report
 from freamer_rl.run import env_registry
-from freamer_rl.world_model.anomaly import DANGER_HR, DEFAULT_ACTION_NAMES, detect_anomalies, plot_anomaly_timeline
+from freamer_rl.world_model.anomaly import (
+    DANGER_HR,
+    DEFAULT_ACTION_NAMES,
+    DEFAULT_EMA_HALFLIFE,
+    anomaly_statistic,
+    detect_anomalies,
+    plot_anomaly_timeline,
+)
 from freamer_rl.world_model.functional import gaussian_kl
 
-__all__ = ["record_episode", "anomaly_report"]
+__all__ = ["record_episode", "anomaly_report", "recording_observations", "recording_kl", "labelled_anomaly_report"]
+
+#: The action index the filter is given for a recording (the subject followed the plan: Continue).
+_CONTINUE = DEFAULT_ACTION_NAMES.index("Continue")
+_ROC, _CUM = 13, 14  # hr_features columns that the env restarts at 0 on every reset
 
 
 @torch.no_grad()
@@ -104,6 +131,8 @@ def anomaly_report(
     momentum: float | None = None,
     deterministic: bool = True,
     progress_bar: bool = True,
+    statistic: str = "running",
+    halflife: float | None = None,
 ) -> dict[str, Any]:
     """Record one long episode with the trained policy, flag KL anomalies and draw the Fig. 4 picture.
 
@@ -124,7 +153,14 @@ def anomaly_report(
     run_dir.mkdir(parents=True, exist_ok=True)
     steps = max(2, int(round(hours * 3600.0 * cfg.env.rate_hz)))
     rec = record_episode(agent, steps, seed=seed, deterministic=deterministic, progress_bar=progress_bar)
-    flags, thr = detect_anomalies(torch.from_numpy(rec["kl"]), k_sigma=k_sigma, warmup=warmup, momentum=momentum)
+    flags, thr = detect_anomalies(
+        torch.from_numpy(rec["kl"]),
+        k_sigma=k_sigma,
+        warmup=warmup,
+        momentum=momentum,
+        statistic=statistic,
+        halflife=halflife,
+    )
     time_h = np.arange(steps, dtype=np.float64) / cfg.env.rate_hz / 3600.0
     hr, act, kl = rec["heart_rate"], rec["action"], rec["kl"]
     png = plot_anomaly_timeline(
@@ -146,6 +182,7 @@ def anomaly_report(
         "rate_hz": cfg.env.rate_hz,
         "encoder": cfg.encoder.kind,
         "k_sigma": k_sigma,
+        "statistic": statistic if momentum is None else "ema",
         "anomalies": int(fl.sum()),
         "anomaly_fraction": float(fl.mean()),
         "anomaly_hr_mean": float(hr[fl].mean()) if fl.any() else None,
@@ -162,3 +199,226 @@ def anomaly_report(
     }
     (run_dir / "anomaly_summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# a recording with labelled anomalies
+# ----------------------------------------------------------------------------------------------------------------------
+def load_recording(data: str | Path, subject: int | None = None) -> Pamap2Recording:
+    """One subject's recording: a ``subjectNNN.dat`` file, or a PAMAP2 folder (root or ``Protocol/``) holding one
+    subject file (or several and ``subject``).
+
+    Raises:
+        Pamap2FormatError / FreamerError: one line -- missing path, a folder without ``subjectNNN.dat`` files, a
+            folder with several and no ``subject``, a malformed file.
+    """
+    path = Path(data)
+    if path.is_file():
+        return load_pamap2_subject(path)
+    recs = load_pamap2_protocol(path, None if subject is None else [subject])
+    if len(recs) > 1:
+        raise FreamerError(
+            f"{path}: holds {len(recs)} subject files ({', '.join(f'subject{s}.dat' for s in recs)}); "
+            "expected one, or name it with --subject"
+        )
+    return next(iter(recs.values()))
+
+
+def recording_observations(feat: Pamap2Features, segment_steps: int) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """The world model's observations of a recording, cut into filter episodes of ``segment_steps`` steps.
+
+    The observation is the loader's (``imu [N, 36]``, ``hr_features [N, 16]``: what the env shows of a PAMAP2
+    window at level 1 without Change); as at an env reset, the heart-rate rate of change (column 13) and the
+    cumulative exertion (column 14) restart at 0 at every episode start. ``segment_steps = 0``: one episode (the
+    cumulative exertion then grows over the whole recording, beyond the training episodes' range).
+
+    Returns:
+        ``({key: float32 [S, L, d]}, valid bool [S, L])`` with ``S = ceil(N / L)`` episodes, the last padded
+        (padding invalid).
+    """
+    n = len(feat)
+    seg = n if segment_steps <= 0 else min(int(segment_steps), n)
+    s_count = -(-n // seg)
+    pad = s_count * seg - n
+    hr = feat.hr_features.astype(np.float32).copy()
+    starts = np.arange(0, n, seg)
+    cum = hr[:, _CUM].astype(np.float64)
+    # cumulative exertion since the episode start, 0 at the start (the env's reset value)
+    hr[:, _CUM] = cum - np.repeat(cum[starts], np.diff(np.append(starts, n)))
+    hr[starts, _ROC] = 0.0
+    valid = np.ones(n + pad, dtype=bool)
+    valid[n:] = False
+
+    def shape(x: np.ndarray) -> np.ndarray:
+        x = np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
+        return x.reshape(s_count, seg, -1).astype(np.float32)
+
+    return {"imu": shape(feat.imu), "hr_features": shape(hr)}, valid.reshape(s_count, seg)
+
+
+@torch.no_grad()
+def recording_kl(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False) -> np.ndarray:
+    """Per-step ``KL(q || p)`` float32 ``[S, L]`` of the trained filter over ``obs`` ``{key: [S, L, d]}``.
+
+    Each of the ``S`` rows is one filter episode (run side by side as a batch): it starts from the zero state with
+    ``is_first`` at step 0, feeds posterior means forward and gives the world model the action Continue (the
+    subject followed the plan) -- :func:`record_episode`'s filter without the policy.
+    """
+    wm = agent.world_model
+    wm.eval()
+    enc = wm.encoder
+    x = {k: torch.from_numpy(v) for k, v in obs.items()}
+    s_count, length = next(iter(x.values())).shape[:2]
+    h, z = wm.rssm.initial_state((s_count,))
+    prev = torch.zeros(s_count, wm.action_dim)
+    cont = torch.nn.functional.one_hot(torch.full((s_count,), _CONTINUE), wm.action_dim).float()
+    state = enc.initial_state((s_count,))
+    first = torch.ones(s_count, dtype=torch.bool)
+    kl = torch.empty(s_count, length)
+    for t in tqdm(range(length), desc="filter", disable=not progress_bar, mininterval=2.0):
+        embed, state = enc.step({k: v[:, t] for k, v in x.items()}, state, first)
+        out = wm.rssm.obs_step(h, z, prev, embed, is_first=first, sample=False)
+        h, z = out["h"], out["z"]
+        kl[:, t] = gaussian_kl(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"])
+        prev, first = cont, torch.zeros_like(first)
+    return kl.numpy()
+
+
+def filter_recording(agent: HealthAgent, feat: Pamap2Features, segment_steps: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(kl float32 [N], include bool [N])`` of the trained filter over a windowed recording, in filter episodes of
+    ``segment_steps`` steps (0 = one); ``include`` is False at each episode's first (reset) step."""
+    obs, valid = recording_observations(feat, segment_steps)
+    kl = recording_kl(agent, obs)
+    include = valid.copy()
+    include[:, 0] = False  # a fresh filter is not a surprise
+    n = len(feat)
+    return kl.reshape(-1)[:n], include.reshape(-1)[:n]
+
+
+def labelled_anomaly_report(
+    checkpoint_or_model: str | Path | HealthAgent,
+    run_dir: str | Path,
+    data: str | Path,
+    labels: str | Path,
+    *,
+    subject: int | None = None,
+    statistic: str = "running",
+    halflife: float | None = None,
+    k_sigma: float = 2.0,
+    warmup: int = 20,
+    tolerance_s: float = 30.0,
+    segment_steps: int | None = None,
+    plot: bool = True,
+) -> dict[str, Any]:
+    """Filter a labelled recording with the trained world model, flag KL anomalies and score them.
+
+    The recording is windowed at the run's ``env.rate_hz`` (:func:`~freamer_rl.data.pamap2_features`, the
+    observation the env builds from a PAMAP2 subject), cut into filter episodes of ``segment_steps`` steps
+    (default: the training episodes' ``env.episode_length``; 0 = one episode; :func:`recording_observations`) and
+    filtered (:func:`recording_kl`). The first step of each episode is neither flagged nor counted in the
+    statistics. Flags: ``KL > mean + k_sigma std`` with the ``running`` or ``ema`` statistic
+    (:func:`~freamer_rl.world_model.anomaly.anomaly_statistic`). Scores
+    (:func:`~freamer_rl.health.anomaly_scoring.score_report`): event-level precision / recall / false alarms per
+    hour (a flag up to ``tolerance_s`` after an event's end still detects it), AUROC and AUC-PR of the KL and of
+    the detector's z-score, strict and point-adjusted.
+
+    Writes into ``run_dir``: ``anomaly_timeline.png`` (with the labelled intervals), ``anomaly_scores.json``
+    (returned) and ``anomaly_scores.npz`` (``kl``, ``z``, ``flag``, ``threshold``, ``label``, ``valid``,
+    ``heart_rate``, ``time_h``, ``events``, ``kinds``).
+
+    Raises:
+        AnomalyLabelsError / Pamap2FormatError: one line naming the file (and line) at fault.
+    """
+    rec = load_recording(data, subject)  # the inputs are checked before the (slower) agent is loaded
+    intervals = read_labels(labels, time_range=recording_time_range(rec))
+    agent = checkpoint_or_model if isinstance(checkpoint_or_model, HealthAgent) else load_agent(checkpoint_or_model)
+    cfg = agent.cfg
+    feat = pamap2_features(rec, rate_hz=cfg.env.rate_hz)
+    step_s = 1.0 / feat.rate_hz
+    seg = cfg.env.episode_length if segment_steps is None else int(segment_steps)
+    kl, include = filter_recording(agent, feat, seg)
+    stat = anomaly_statistic(
+        torch.from_numpy(kl),
+        k_sigma=k_sigma,
+        warmup=warmup,
+        statistic=statistic,
+        halflife=halflife,
+        include=torch.from_numpy(include),
+    )
+    arrays = {k: stat[k].numpy() for k in ("flags", "z", "threshold")}
+    arrays.update(kl=kl, valid=include, heart_rate=feat.heart_rate, kinds=np.asarray([a.kind for a in intervals]))
+    arrays["events"] = interval_steps(
+        [a.start_s for a in intervals], [a.end_s for a in intervals], feat.timestamp, step_s
+    )
+    arrays["time_h"] = (feat.timestamp - feat.timestamp[0] + step_s) / 3600.0
+    summary = {
+        "data": str(data),
+        "labels": str(labels),
+        "subject": rec.subject,
+        "encoder": cfg.encoder.kind,
+        "rate_hz": feat.rate_hz,
+        "steps": len(feat),
+        "hours": len(feat) * step_s / 3600.0,
+        "recording_hours": rec.duration_s / 3600.0,
+        "wraps": False,
+        "segment_steps": seg if seg > 0 else len(feat),
+        "statistic": statistic,
+        "ema_halflife": (DEFAULT_EMA_HALFLIFE if halflife is None else float(halflife)) if statistic == "ema" else None,
+        "k_sigma": k_sigma,
+        "warmup": warmup,
+        **_scores(arrays, step_s, int(round(tolerance_s / step_s))),
+    }
+    return _write_labelled(Path(run_dir), summary, arrays, plot)
+
+
+def _scores(a: dict[str, np.ndarray], step_s: float, tol: int) -> dict[str, Any]:
+    """The summary's metrics: event level and the KL's AUROC / AUC-PR at the top, the z-score's beside."""
+    common = {"step_s": step_s, "tolerance": tol, "valid": a["valid"], "kinds": list(a["kinds"])}
+    on_kl = score_report(a["kl"], a["flags"], a["events"], **common)
+    on_z = score_report(a["z"], a["flags"], a["events"], **common)
+    return {
+        "tolerance_s": tol * step_s,
+        **on_kl["event"],
+        "auroc": on_kl["strict"]["auroc"],
+        "auc_pr": on_kl["strict"]["auc_pr"],
+        "auroc_point_adjusted": on_kl["point_adjusted"]["auroc"],
+        "auc_pr_point_adjusted": on_kl["point_adjusted"]["auc_pr"],
+        "recall_by_kind": on_kl["recall_by_kind"],
+        "kl_score": {"strict": on_kl["strict"], "point_adjusted": on_kl["point_adjusted"]},
+        "z_score": {"strict": on_z["strict"], "point_adjusted": on_z["point_adjusted"]},
+        "anomalous_steps": on_kl["anomalous_steps"],
+        "flagged_steps": on_kl["flagged_steps"],
+        "flagged_fraction": float(a["flags"].mean()),
+    }
+
+
+def _write_labelled(run_dir: Path, summary: dict, a: dict[str, np.ndarray], plot: bool) -> dict[str, Any]:
+    """Write ``anomaly_scores.npz``, the timeline (if ``plot``) and ``anomaly_scores.json``; return the summary."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    n = a["kl"].shape[0]
+    label = np.zeros(n, dtype=bool)
+    for s, e in a["events"]:
+        label[s:e] = True
+    rest = {k: v for k, v in a.items() if k != "flags"}
+    np.savez_compressed(run_dir / "anomaly_scores.npz", flag=a["flags"], label=label, **rest)
+    if plot:
+        t, step_h = a["time_h"], 1.0 / summary["rate_hz"] / 3600.0
+        summary["png"] = plot_anomaly_timeline(
+            a["heart_rate"],
+            np.full(n, _CONTINUE),
+            a["kl"],
+            a["flags"],
+            run_dir / "anomaly_timeline.png",
+            time_hours=t,
+            threshold=a["threshold"],
+            intervals=[(t[s] - step_h, t[e - 1], k) for (s, e), k in zip(a["events"], a["kinds"])],
+            title=f"{summary['hours']:.3g}-hour labelled recording, {summary['encoder']} encoder: KL > mean + "
+            f"{summary['k_sigma']:g} std ({summary['statistic']}); recall {_fmt(summary['recall'])}, "
+            f"{_fmt(summary['fa_per_hour'])} false alarms/h",
+        )
+    (run_dir / "anomaly_scores.json").write_text(json.dumps(summary, indent=2))
+    return summary
+
+
+def _fmt(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.2f}"

@@ -1,10 +1,14 @@
 """Command line of the health domain.
 
     freamer-rl health anomaly RUN_DIR_OR_CHECKPOINT [--hours 48] [--out DIR] [--seed 0]
+        [--statistic running|ema] [--ema-halflife STEPS] [--k-sigma 2]
+        [--data FILE_OR_FOLDER --labels LABELS.csv [--subject N] [--tolerance-s 30] [--segment-steps N]]
     freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
 
 ``anomaly`` runs :func:`~freamer_rl.health.anomaly_report.anomaly_report` (Fig. 4 picture, default output: the run
-directory). ``train`` is an alias of ``freamer-rl train`` for health recipes (the registry entry
+directory); with ``--data`` and ``--labels`` it filters that labelled recording instead and scores the flags
+(:func:`~freamer_rl.health.anomaly_report.labelled_anomaly_report`: ``anomaly_scores.json`` next to
+``anomaly_timeline.png``; labelled scenarios come from :func:`freamer_rl.data.anomaly_labels.write_anomaly_scenario`). ``train`` is an alias of ``freamer-rl train`` for health recipes (the registry entry
 :func:`freamer_rl.trainers.health.train`, resumable) and prints the summary as JSON.
 :func:`main` takes ``argv`` so that ``freamer-rl health ...`` can delegate to it.
 """
@@ -14,14 +18,16 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 from pathlib import Path
 
 from freamer_rl.config.loader import load_config
-from freamer_rl.errors import FreamerError
-from freamer_rl.health.anomaly_report import anomaly_report
+from freamer_rl.errors import ConfigError, FreamerError
+from freamer_rl.health.anomaly_report import anomaly_report, labelled_anomaly_report
 from freamer_rl.health.config import HealthConfig
 from freamer_rl.trainers.health import train as train_health  # the registry entry (its STRUCTURAL)
+from freamer_rl.world_model.anomaly import STATISTICS
 
 
 def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
@@ -42,7 +48,56 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
     p_an.add_argument("--out", default=None, help="output directory (default: the run directory)")
     p_an.add_argument("--seed", type=int, default=0)
     p_an.add_argument("--k-sigma", type=float, default=2.0)
+    p_an.add_argument("--statistic", choices=STATISTICS, default="running", help="running (Welford) or ema mean/std")
+    p_an.add_argument("--ema-halflife", type=float, default=None, help="EMA half-life in steps (--statistic ema)")
+    p_an.add_argument("--data", default=None, help="a labelled PAMAP2 recording: subjectNNN.dat or its folder")
+    p_an.add_argument("--labels", default=None, help="its labels CSV (start_s,end_s,kind)")
+    p_an.add_argument("--subject", type=int, default=None, help="the subject, when --data holds several")
+    p_an.add_argument("--tolerance-s", type=float, default=30.0, help="a flag this long after an event still counts")
+    p_an.add_argument(
+        "--segment-steps", type=int, default=None, help="filter episode length (default env.episode_length; 0: one)"
+    )
     return parser
+
+
+def _anomaly(args: argparse.Namespace) -> dict:
+    ckpt = Path(args.checkpoint)
+    out = Path(args.out) if args.out else (ckpt if ckpt.is_dir() else ckpt.parent)
+    if args.ema_halflife is not None and args.statistic != "ema":
+        raise ConfigError("--ema-halflife: only used with --statistic ema")
+    checks = (
+        ("--ema-halflife", args.ema_halflife, lambda v: v > 0, "a number of steps > 0"),
+        ("--k-sigma", args.k_sigma, lambda v: v >= 0, "a number >= 0"),
+        ("--tolerance-s", args.tolerance_s, lambda v: v >= 0, "seconds >= 0"),
+        ("--segment-steps", args.segment_steps, lambda v: v >= 0, "an integer >= 0 (0: one filter episode)"),
+    )
+    for flag, value, ok, expected in checks:
+        if value is not None and not (math.isfinite(value) and ok(value)):
+            raise ConfigError(f"{flag}: expected {expected}, got {value!r}")
+    if (args.data is None) != (args.labels is None):
+        raise ConfigError("--data and --labels: give both (a labelled recording) or neither (an env episode)")
+    if args.data is None:
+        return anomaly_report(
+            ckpt,
+            out,
+            hours=args.hours,
+            seed=args.seed,
+            k_sigma=args.k_sigma,
+            statistic=args.statistic,
+            halflife=args.ema_halflife,
+        )
+    return labelled_anomaly_report(
+        ckpt,
+        out,
+        args.data,
+        args.labels,
+        subject=args.subject,
+        statistic=args.statistic,
+        halflife=args.ema_halflife,
+        k_sigma=args.k_sigma,
+        tolerance_s=args.tolerance_s,
+        segment_steps=args.segment_steps,
+    )
 
 
 def main(argv: list[str] | None = None, prog: str = "freamer-rl health") -> int:
@@ -56,9 +111,7 @@ def main(argv: list[str] | None = None, prog: str = "freamer-rl health") -> int:
             cfg = load_config(recipe, overrides, schema=HealthConfig)
             summary = train_health(cfg, args.run_dir, resume=not args.no_resume)
         else:
-            ckpt = Path(args.checkpoint)
-            out = Path(args.out) if args.out else (ckpt if ckpt.is_dir() else ckpt.parent)
-            summary = anomaly_report(ckpt, out, hours=args.hours, seed=args.seed, k_sigma=args.k_sigma)
+            summary = _anomaly(args)
     except (FreamerError, FileNotFoundError) as err:
         sys.stderr.write(f"error: {err}\n")
         return 2

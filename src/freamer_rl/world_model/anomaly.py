@@ -2,7 +2,9 @@
 
 The per-step ``KL(q(z_t | h_t, o_t) || p(z_t | h_t))`` measures how far the observation departs from what the
 world model predicted. A step is an anomaly candidate when ``KL_t > mu_D + k sigma_D`` (``k = 2``), with ``mu_D`` and
-``sigma_D`` the running mean and standard deviation of the KL values.
+``sigma_D`` the running mean and standard deviation of the KL values (``statistic="running"``, Welford over the
+whole stream) or their exponentially weighted versions (``statistic="ema"``, half-life in steps: follows slow
+changes of the baseline over a long scenario).
 
 * :class:`KLAnomalyDetector` -- the running statistics and the flag (plain module, streams of any batch shape).
 * :class:`KLAnomalyTransform` -- online use inside a TorchRL env: filters the posterior each step, writes ``"kl"``
@@ -36,7 +38,10 @@ __all__ = [
     "KLAnomalyDetector",
     "KLAnomalyTransform",
     "detect_anomalies",
+    "anomaly_statistic",
     "plot_anomaly_timeline",
+    "STATISTICS",
+    "DEFAULT_EMA_HALFLIFE",
     "DEFAULT_HR_ZONES",
     "DEFAULT_ACTION_NAMES",
     "DANGER_HR",
@@ -51,6 +56,10 @@ DEFAULT_HR_ZONES: tuple[tuple[str, float, float, str], ...] = (
 )
 #: Heart rate above which a step is in the danger zone (bpm): the lower edge of the last zone.
 DANGER_HR: float = DEFAULT_HR_ZONES[-1][1]
+#: The detector's statistics: exact running (Welford) mean/std, or exponentially weighted ones.
+STATISTICS: tuple[str, ...] = ("running", "ema")
+#: Default EMA half-life in steps (720 = one hour at the health recipes' 0.2 Hz).
+DEFAULT_EMA_HALFLIFE: float = 720.0
 #: The health env's actions, in index order (Appendix C).
 DEFAULT_ACTION_NAMES: tuple[str, ...] = ("Continue", "Rest", "Increase", "Change", "Alert")
 
@@ -66,6 +75,9 @@ class KLAnomalyDetector(nn.Module):
             ``(0, 1]`` for exponential moving statistics (``mean <- mean + m (x - mean)``, ``var <- (1 - m)
             (var + m (x - mean)^2)``) that follow slow drifts (e.g. over a 48-hour scenario).
         min_std: floor of the std in the threshold, so that a constant signal's numerical jitter is not flagged.
+        statistic: ``"running"`` (Welford, unless ``momentum`` is given) or ``"ema"`` (exponential statistics
+            with ``m = 1 - 2^(-1 / halflife)``: a value's weight halves every ``halflife`` steps).
+        halflife: EMA half-life in steps (default :data:`DEFAULT_EMA_HALFLIFE`); only with ``statistic="ema"``.
 
     Each call of :meth:`update` with ``kl [*B]`` treats every element as an independent stream (one per env in a
     batch); the statistics take that shape on the first call. The flag of a value is decided against the
@@ -73,13 +85,33 @@ class KLAnomalyDetector(nn.Module):
     """
 
     def __init__(
-        self, k_sigma: float = 2.0, warmup: int = 20, momentum: float | None = None, min_std: float = 1e-4
+        self,
+        k_sigma: float = 2.0,
+        warmup: int = 20,
+        momentum: float | None = None,
+        min_std: float = 1e-4,
+        *,
+        statistic: str = "running",
+        halflife: float | None = None,
     ) -> None:
         super().__init__()
+        if statistic not in STATISTICS:
+            raise ValueError(f"statistic: expected one of {', '.join(STATISTICS)}, got {statistic!r}")
+        if halflife is not None and statistic != "ema":
+            raise ValueError(f"halflife: only used with statistic='ema', got statistic={statistic!r}")
+        if statistic == "ema":
+            if momentum is not None:
+                raise ValueError("momentum: give either momentum or statistic='ema' with a halflife, not both")
+            halflife = DEFAULT_EMA_HALFLIFE if halflife is None else float(halflife)
+            if not (halflife > 0 and math.isfinite(halflife)):
+                raise ValueError(f"halflife: expected a finite number of steps > 0, got {halflife!r}")
+            momentum = 1.0 - 0.5 ** (1.0 / halflife)
         if momentum is not None and not 0.0 < momentum <= 1.0:
             raise ValueError(f"momentum: expected None or a float in (0, 1], got {momentum}")
         if warmup < 2:
             raise ValueError(f"warmup: expected >= 2 (a std needs two values), got {warmup}")
+        self.statistic = "ema" if momentum is not None else "running"
+        self.halflife = halflife
         self.k_sigma = k_sigma
         self.warmup = warmup
         self.momentum = momentum
@@ -107,8 +139,12 @@ class KLAnomalyDetector(nn.Module):
         return self.mean + self.k_sigma * self.std.clamp(min=self.min_std)
 
     @torch.no_grad()
-    def update(self, kl: torch.Tensor) -> torch.Tensor:
-        """Flag ``kl [*B]`` against the current statistics, then include it. Returns bool ``[*B]``."""
+    def update(self, kl: torch.Tensor, include: torch.Tensor | None = None) -> torch.Tensor:
+        """Flag ``kl [*B]`` against the current statistics, then include it. Returns bool ``[*B]``.
+
+        ``include`` (bool ``[*B]``, default all True): where False the value is neither flagged nor added to the
+        statistics (e.g. the first step after a filter reset, whose KL starts from the zero state). No host sync.
+        """
         kl = kl.detach().float()
         if self.count is None:
             self.count = torch.zeros(kl.shape, dtype=torch.long, device=kl.device)
@@ -122,38 +158,95 @@ class KLAnomalyDetector(nn.Module):
         flags = (self.count >= self.warmup) & (kl > self.threshold)
         delta = kl - self.mean
         if self.momentum is None:
-            self.count = self.count + 1
-            self.mean = self.mean + delta / self.count
-            self.m2 = self.m2 + delta * (kl - self.mean)
+            count = self.count + 1
+            mean = self.mean + delta / count
+            m2 = self.m2 + delta * (kl - mean)
         else:
             first = self.count == 0
             m = self.momentum
-            self.mean = torch.where(first, kl, self.mean + m * delta)
-            self.m2 = torch.where(first, torch.zeros_like(kl), (1 - m) * (self.m2 + m * delta.pow(2)))
-            self.count = self.count + 1
-        return flags
+            mean = torch.where(first, kl, self.mean + m * delta)
+            m2 = torch.where(first, torch.zeros_like(kl), (1 - m) * (self.m2 + m * delta.pow(2)))
+            count = self.count + 1
+        if include is None:
+            self.count, self.mean, self.m2 = count, mean, m2
+            return flags
+        inc = include.to(device=kl.device, dtype=torch.bool).expand(kl.shape)
+        self.count = torch.where(inc, count, self.count)
+        self.mean = torch.where(inc, mean, self.mean)
+        self.m2 = torch.where(inc, m2, self.m2)
+        return flags & inc
 
     forward = update
 
 
 @torch.no_grad()
+def anomaly_statistic(
+    kl: torch.Tensor,
+    k_sigma: float = 2.0,
+    warmup: int = 20,
+    momentum: float | None = None,
+    min_std: float = 1e-4,
+    *,
+    statistic: str = "running",
+    halflife: float | None = None,
+    include: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
+    """Stream a recorded KL sequence ``[*B, T]`` (time last) through a fresh :class:`KLAnomalyDetector`.
+
+    ``include`` (bool ``[*B, T]``): steps to leave out of the flags and the statistics (see
+    :meth:`KLAnomalyDetector.update`). Returns ``[*B, T]`` tensors: ``flags`` (bool), ``threshold`` (``mean + k
+    max(std, min_std)`` in force at the step, NaN during warm-up), ``mean``, ``std`` (before the step, NaN during
+    warm-up) and ``z = (KL - mean) / max(std, min_std)`` (the detector's score: flagged iff ``z > k``; NaN during
+    warm-up and where ``include`` is False).
+    """
+    det = KLAnomalyDetector(k_sigma, warmup, momentum, min_std, statistic=statistic, halflife=halflife)
+    flags, mean, std = [], [], []
+    nan = torch.full_like(kl[..., 0], float("nan"))
+    for t in range(kl.shape[-1]):
+        x = kl[..., t]
+        inc = None if include is None else include[..., t]
+        if det.count is not None:
+            ready = det.count >= warmup
+            mean.append(torch.where(ready, det.mean, nan))
+            std.append(torch.where(ready, det.std.clamp(min=min_std), nan))
+        else:
+            mean.append(nan)
+            std.append(nan)
+        flags.append(det.update(x, inc))
+    mean_t, std_t = torch.stack(mean, -1), torch.stack(std, -1)
+    z = (kl.float() - mean_t) / std_t
+    if include is not None:
+        z = z.masked_fill(~include.bool(), float("nan"))
+    return {
+        "flags": torch.stack(flags, -1),
+        "threshold": mean_t + k_sigma * std_t,
+        "mean": mean_t,
+        "std": std_t,
+        "z": z,
+    }
+
+
+@torch.no_grad()
 def detect_anomalies(
-    kl: torch.Tensor, k_sigma: float = 2.0, warmup: int = 20, momentum: float | None = None, min_std: float = 1e-4
+    kl: torch.Tensor,
+    k_sigma: float = 2.0,
+    warmup: int = 20,
+    momentum: float | None = None,
+    min_std: float = 1e-4,
+    *,
+    statistic: str = "running",
+    halflife: float | None = None,
+    include: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Stream a recorded KL sequence ``[*B, T]`` (time last) through a fresh :class:`KLAnomalyDetector`.
 
     Returns ``(flags bool [*B, T], threshold [*B, T])`` -- the threshold in force at each step (NaN during warm-up).
+    :func:`anomaly_statistic` gives the z-score and the statistics too.
     """
-    det = KLAnomalyDetector(k_sigma, warmup, momentum, min_std)
-    flags, thr = [], []
-    for t in range(kl.shape[-1]):
-        x = kl[..., t]
-        if det.count is not None and int(det.count.min()) >= warmup:
-            thr.append(det.threshold.clone())
-        else:
-            thr.append(torch.full_like(x, float("nan")))
-        flags.append(det.update(x))
-    return torch.stack(flags, -1), torch.stack(thr, -1)
+    out = anomaly_statistic(
+        kl, k_sigma, warmup, momentum, min_std, statistic=statistic, halflife=halflife, include=include
+    )
+    return out["flags"], out["threshold"]
 
 
 class KLAnomalyTransform(Transform):
@@ -306,6 +399,23 @@ def _action_strip(ax, x, act, action_names: Sequence[str]) -> None:
     )
 
 
+_KIND_COLOURS = ("#9467bd", "#17becf", "#bcbd22", "#8c564b", "#e377c2", "#7f7f7f")
+
+
+def _shade_intervals(axes, intervals: Sequence[tuple[float, float, str]]) -> None:
+    """Shade each ``(start, end, kind)`` on every axis; one legend entry per kind on the last axis."""
+    from matplotlib.patches import Patch
+
+    kinds = list(dict.fromkeys(k for _, _, k in intervals))
+    colour = {k: _KIND_COLOURS[i % len(_KIND_COLOURS)] for i, k in enumerate(kinds)}
+    for start, end, kind in intervals:
+        for ax in axes:
+            ax.axvspan(float(start), float(end), color=colour[kind], alpha=0.3, lw=0)
+    if kinds:
+        handles = [Patch(color=colour[k], alpha=0.3, label=f"labelled {k}") for k in kinds]
+        axes[-1].add_artist(axes[-1].legend(handles=handles, loc="upper left", fontsize=8))
+
+
 def plot_anomaly_timeline(
     heart_rate,
     actions,
@@ -318,6 +428,7 @@ def plot_anomaly_timeline(
     time_hours=None,
     threshold=None,
     title: str | None = None,
+    intervals: Sequence[tuple[float, float, str]] = (),
 ) -> str:
     """Draw the paper's Fig. 4 style timeline and save it as a PNG (matplotlib Agg canvas; no global state).
 
@@ -332,6 +443,8 @@ def plot_anomaly_timeline(
         zones: ``(name, low, high, colour)`` bands.
         time_hours: x values (default: step index).
         threshold: optional ``[T]`` KL threshold curve.
+        intervals: labelled ground-truth intervals ``(start, end, kind)`` in the units of the x axis
+            (``time_hours`` if given, else steps), shaded on the heart-rate and KL panels, one colour per kind.
     Returns the path written.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -368,6 +481,7 @@ def plot_anomaly_timeline(
         ax_kl.scatter(x[fl], klv[fl], color="red", marker="v", s=30, zorder=3, label=f"anomaly ({int(fl.sum())})")
         for xi in x[fl]:
             ax_hr.axvline(xi, color="red", alpha=0.25, lw=0.8)
+    _shade_intervals((ax_hr, ax_kl), intervals)
     ax_kl.set_ylabel("KL (nats)")
     ax_kl.set_xlabel(xlabel)
     ax_kl.legend(loc="upper right", fontsize=8)

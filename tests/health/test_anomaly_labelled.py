@@ -1,0 +1,157 @@
+"""``freamer-rl health anomaly RUN --data FILE --labels LABELS.csv``: a tiny run trained here, a generated labelled
+recording, the JSON of every metric, and the one-line errors for bad inputs."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from freamer_rl.data.anomaly_labels import write_anomaly_scenario
+from freamer_rl.health.anomaly_report import recording_observations
+from freamer_rl.health.cli import main
+from freamer_rl.health.config import load_health_config
+from freamer_rl.run import env_registry
+from freamer_rl.trainers.health import train as train_health
+
+TINY = [
+    "encoder.kind=mlp",
+    "env.num_envs=2",
+    "env.episode_length=48",
+    "collect.iterations=1",
+    "collect.prefill_frames=96",
+    "collect.frames_per_iter=48",
+    "world_model.seq_len=12",
+    "world_model.batch_size=4",
+    "world_model.train_steps=2",
+    "world_model.prefill_train_steps=2",
+    "world_model.deter_dim=16",
+    "world_model.stoch_dim=4",
+    "world_model.hidden=16",
+    "encoder.embed_dim=12",
+    "encoder.hidden=16",
+    "imagination.num_seeds=8",
+    "imagination.updates=1",
+    "imagination.epochs=1",
+    "imagination.num_minibatches=2",
+    "imagination.policy_hidden=16",
+    "eval.num_envs=2",
+    "eval.horizon_context=4",
+    "eval.horizon_max=8",
+    "eval.mse_windows=4",
+    "eval.horizon_windows=4",
+    "logging.progress_bar=false",
+]
+METRICS = (
+    "events",
+    "detected",
+    "recall",
+    "precision",
+    "f1",
+    "false_alarms",
+    "fa_per_hour",
+    "auroc",
+    "auc_pr",
+    "auroc_point_adjusted",
+    "auc_pr_point_adjusted",
+    "recall_by_kind",
+    "kl_score",
+    "z_score",
+)
+
+
+@pytest.fixture(scope="module")
+def run_and_scenario(tmp_path_factory):
+    orig = None
+    if "health" not in env_registry.available_adapters():
+        from freamer_rl_envs.health import make_health_env as factory
+
+        orig = env_registry.get_env_factory
+        env_registry.get_env_factory = lambda a: factory if a == "health" else orig(a)
+    try:
+        torch.manual_seed(0)
+        run_dir = tmp_path_factory.mktemp("tiny_health")
+        train_health(load_health_config(None, TINY), run_dir)
+    finally:
+        if orig is not None:
+            env_registry.get_env_factory = orig
+    scen = tmp_path_factory.mktemp("scenario")
+    dat, labels = write_anomaly_scenario(scen, hours=3.0, seed=0, per_kind=1)
+    return run_dir, scen, dat, labels
+
+
+@pytest.mark.parametrize("extra", [[], ["--statistic", "ema", "--ema-halflife", "100", "--k-sigma", "1.5"]])
+def test_cli_scores_a_labelled_recording(run_and_scenario, tmp_path, capsys, extra):
+    run_dir, scen, dat, labels = run_and_scenario
+    argv = ["anomaly", str(run_dir), "--data", str(dat), "--labels", str(labels), "--out", str(tmp_path), *extra]
+    assert main(argv) == 0
+    printed = json.loads(capsys.readouterr().out)
+    on_disk = json.loads((tmp_path / "anomaly_scores.json").read_text())
+    assert printed == on_disk
+    for key in METRICS:
+        assert key in on_disk, key
+    assert on_disk["events"] == 4 and set(on_disk["recall_by_kind"]) == {"hr_spike", "dropout", "drift", "arrhythmia"}
+    assert on_disk["steps"] == 3 * 3600 // 5 and on_disk["hours"] == pytest.approx(3.0) and not on_disk["wraps"]
+    assert on_disk["statistic"] == ("ema" if extra else "running")
+    for part in ("kl_score", "z_score"):
+        for adj in ("strict", "point_adjusted"):
+            assert 0.0 <= on_disk[part][adj]["auroc"] <= 1.0
+    assert 0.0 <= on_disk["recall"] <= 1.0 and on_disk["fa_per_hour"] >= 0.0
+    assert (tmp_path / "anomaly_timeline.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    arrays = np.load(tmp_path / "anomaly_scores.npz")
+    assert arrays["flag"].sum() == on_disk["flagged_steps"] and arrays["label"].sum() == on_disk["anomalous_steps"]
+    # the first step of every 48-step filter episode is never flagged
+    assert not arrays["flag"][::48].any() and not arrays["valid"][::48].any()
+    # the folder holding the one subject file works as --data too
+    assert main([*argv[:3], str(scen), *argv[4:]]) == 0
+    assert json.loads(capsys.readouterr().out)["recall"] == on_disk["recall"]
+
+
+def error_lines(capsys):
+    err = capsys.readouterr().err
+    return [line for line in err.splitlines() if line.startswith("error:")]
+
+
+@pytest.mark.parametrize(
+    "labels_text, where",
+    [
+        ("start_s,end_s,kind\n100,200,hr_spike\n150,300,drift\n", "line 3: interval"),
+        ("start_s,end_s,kind\n100,200,hr_spike\n300,x,drift\n", "line 3: end_s: not a finite number"),
+        ("start_s,end_s,kind\n100,99999,hr_spike\n", "line 2: interval [100, 99999) s is outside the recording"),
+    ],
+)
+def test_cli_bad_labels_give_one_error_line(run_and_scenario, tmp_path, capsys, labels_text, where):
+    run_dir, _, dat, _ = run_and_scenario
+    bad = tmp_path / "bad_labels.csv"
+    bad.write_text(labels_text)
+    assert main(["anomaly", str(run_dir), "--data", str(dat), "--labels", str(bad), "--out", str(tmp_path)]) == 2
+    lines = error_lines(capsys)
+    assert len(lines) == 1 and f"{bad}: {where}" in lines[0], lines
+
+
+def test_cli_bad_data_and_flags_give_one_error_line(run_and_scenario, tmp_path, capsys):
+    run_dir, _, _, labels = run_and_scenario
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["anomaly", str(run_dir), "--data", str(empty), "--labels", str(labels)]) == 2
+    lines = error_lines(capsys)
+    assert len(lines) == 1 and "no subjectNNN.dat files (expected subject101.dat .. subject109.dat)" in lines[0]
+    assert main(["anomaly", str(run_dir), "--data", str(empty)]) == 2
+    assert "--data and --labels" in error_lines(capsys)[0]
+    assert main(["anomaly", str(run_dir), "--statistic", "ema", "--ema-halflife", "-1"]) == 2
+    assert "--ema-halflife: expected a number of steps > 0" in error_lines(capsys)[0]
+
+
+def test_observations_restart_the_reset_features():
+    """Each filter episode starts as an env reset does: rate of change and cumulative exertion at 0."""
+    from freamer_rl.data import pamap2_features, synthetic_recording
+
+    feat = pamap2_features(synthetic_recording(101, duration_s=600.0, row_rate_hz=1.0), rate_hz=0.2)  # 120 steps
+    obs, valid = recording_observations(feat, 50)
+    assert obs["hr_features"].shape == (3, 50, 16) and valid.sum() == 120 and not valid[2, 20:].any()
+    hr = obs["hr_features"]
+    assert (hr[:, 0, 13] == 0).all() and (hr[:, 0, 14] == 0).all()
+    # inside an episode the cumulative exertion grows by the loader's increments
+    d_loader = np.diff(feat.hr_features[50:100, 14])
+    np.testing.assert_allclose(np.diff(hr[1, :, 14]), d_loader, rtol=1e-4, atol=1e-6)
+    np.testing.assert_array_equal(obs["imu"].reshape(-1, 36)[:120], feat.imu)
