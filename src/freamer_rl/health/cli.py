@@ -4,11 +4,15 @@
         [--statistic running|ema] [--ema-halflife STEPS] [--k-sigma 2]
         [--data FILE_OR_FOLDER --labels LABELS.csv [--subject N] [--tolerance-s 30] [--segment-steps N]]
     freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
+    freamer-rl health baselines recipes/health/health_foundation.yaml [--depth 4] [--horizon 12] [--json FILE] [key=value ...]
 
 ``anomaly`` runs :func:`~freamer_rl.health.anomaly_report.anomaly_report` (Fig. 4 picture, default output: the run
 directory); with ``--data`` and ``--labels`` it filters that labelled recording instead and scores the flags
 (:func:`~freamer_rl.health.anomaly_report.labelled_anomaly_report`: ``anomaly_scores.json`` next to
-``anomaly_timeline.png``; labelled scenarios come from :func:`freamer_rl.data.anomaly_labels.write_anomaly_scenario`). ``train`` is an alias of ``freamer-rl train`` for health recipes (the registry entry
+``anomaly_timeline.png``; labelled scenarios come from
+:func:`freamer_rl.data.anomaly_labels.write_anomaly_scenario`). ``baselines`` prints the ceiling table
+(:func:`~freamer_rl.health.reference.ceiling_table`: the oracle planner, the heart-rate rule and fixed policies on the
+recipe's evaluation episodes, each as a fraction of the oracle). ``train`` is an alias of ``freamer-rl train`` for health recipes (the registry entry
 :func:`freamer_rl.trainers.health.train`, resumable) and prints the summary as JSON.
 :func:`main` takes ``argv`` so that ``freamer-rl health ...`` can delegate to it.
 """
@@ -26,6 +30,7 @@ from freamer_rl.config.loader import load_config
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.health.anomaly_report import anomaly_report, labelled_anomaly_report
 from freamer_rl.health.config import HealthConfig
+from freamer_rl.health.reference import ceiling_table, format_ceiling_table
 from freamer_rl.trainers.health import train as train_health  # the registry entry (its STRUCTURAL)
 from freamer_rl.world_model.anomaly import STATISTICS
 
@@ -57,7 +62,25 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
     p_an.add_argument(
         "--segment-steps", type=int, default=None, help="filter episode length (default env.episode_length; 0: one)"
     )
+    p_b = sub.add_parser("baselines", help="the ceiling table: an oracle planner on the true simulator vs the rules")
+    p_b.add_argument("recipe", help="health recipe: its env and eval sections set the episodes")
+    p_b.add_argument("overrides", nargs="*", help="dotted overrides, e.g. eval.num_envs=32 eval.seed=0")
+    p_b.add_argument("--depth", type=int, default=4, help="oracle: exhaustive search depth (5**depth sequences)")
+    p_b.add_argument("--horizon", type=int, default=12, help="oracle: steps simulated per candidate")
+    p_b.add_argument("--json", default=None, help="also write the rows as JSON to this file")
     return parser
+
+
+def _baselines(args: argparse.Namespace) -> str:
+    """``freamer-rl health baselines RECIPE``: the ceiling table as markdown (rows as JSON with ``--json``)."""
+    for flag, value in (("--depth", args.depth), ("--horizon", args.horizon)):
+        if value < 1:
+            raise ConfigError(f"{flag}: expected an integer >= 1, got {value}")
+    cfg = load_config(args.recipe, list(args.overrides), schema=HealthConfig)
+    rows = ceiling_table(cfg, depth=args.depth, horizon=args.horizon)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2, default=str) + "\n")
+    return format_ceiling_table(rows)
 
 
 def _anomaly(args: argparse.Namespace) -> dict:
@@ -110,6 +133,9 @@ def main(argv: list[str] | None = None, prog: str = "freamer-rl health") -> int:
                 recipe, overrides = None, [recipe, *overrides]  # no recipe, only overrides
             cfg = load_config(recipe, overrides, schema=HealthConfig)
             summary = train_health(cfg, args.run_dir, resume=not args.no_resume)
+        elif args.command == "baselines":
+            sys.stdout.write(_baselines(args) + "\n")
+            return 0
         else:
             summary = _anomaly(args)
     except (FreamerError, FileNotFoundError) as err:
