@@ -53,6 +53,10 @@ Reward (Eq. A11) ``R = w_safe R_safe + w_target R_target + w_fatigue R_fatigue``
 
 Termination when ``HR >= 200`` bpm (medical emergency), truncation after ``episode_length`` steps.
 
+Subjects: env id ``pamap2-health-varied`` gives every synthetic subject its own activity plan
+(:mod:`freamer_rl.data.subject_profiles`: activity levels low / moderate / high, mean MET 2.1-5.9); the other ids
+follow the protocol order.
+
 Subject constants: synthetic subjects use their generator's ground truth; real subjects use ``HR_rest`` = 5th
 percentile of their heart rate, ``gain`` = median of ``(HR - HR_rest) / (MET - 1)`` over windows with MET >= 3
 (clipped to [6, 18]), ``tau = 20 s``, ``drift = 12 bpm``.
@@ -121,6 +125,7 @@ __all__ = [
     "hrv_update",
     "HEALTH_ACTIONS",
     "HEALTH_ENV_IDS",
+    "VARIED_ENV_ID",
     "HealthDynamics",
     "HealthEnv",
     "make_health_env",
@@ -128,7 +133,8 @@ __all__ = [
 
 HEALTH_ACTIONS: tuple[str, ...] = ("continue", "rest", "increase", "change", "alert")
 CONTINUE, REST, INCREASE, CHANGE, ALERT = range(5)
-HEALTH_ENV_IDS: tuple[str, ...] = ("pamap2-health", "health", "pamap2")
+VARIED_ENV_ID = "pamap2-health-varied"  # synthetic subjects with their own activity plans (data.subject_profiles)
+HEALTH_ENV_IDS: tuple[str, ...] = ("pamap2-health", "health", "pamap2", VARIED_ENV_ID)
 DEFAULT_REWARD_WEIGHTS: tuple[float, float, float] = (2.0, 1.0, 0.5)
 
 #: Activity the **Change** action switches to, by current activity id.
@@ -541,7 +547,8 @@ def make_health_env(
 
     Args:
         env_id: optional, for the ``factory(env_id, *, seed, **options)`` adapter convention; one of
-            :data:`HEALTH_ENV_IDS` or ``None``.
+            :data:`HEALTH_ENV_IDS` or ``None``; :data:`VARIED_ENV_ID`: synthetic subjects with their own activity
+            plans (:mod:`freamer_rl.data.subject_profiles`, the same physiology), refused with ``data_dir``.
         data_dir: PAMAP2 root (holding ``Protocol/``) or the ``Protocol`` folder; ``None`` = synthetic subjects
             (:func:`freamer_rl.data.synthetic_recording`, ``synthetic_duration_s`` each, fixed by
             ``data_seed``).
@@ -561,6 +568,8 @@ def make_health_env(
     """
     if env_id is not None and env_id.lower() not in HEALTH_ENV_IDS:
         raise ValueError(f"unknown health env id {env_id!r}; valid ids: {', '.join(HEALTH_ENV_IDS)} (or None)")
+    if (varied := env_id is not None and env_id.lower() == VARIED_ENV_ID) and data_dir is not None:
+        raise ValueError(f"env id {VARIED_ENV_ID!r} is for synthetic subjects; data_dir {str(data_dir)!r} is real data")
     subj: tuple[int, ...] | None = None
     if subjects is not None:
         subj = tuple(sorted({int(x) for x in subjects}))
@@ -574,6 +583,7 @@ def make_health_env(
         float(synthetic_duration_s),
         int(data_seed),
         dyn,
+        varied,
     )
     return HealthEnv(
         tables,

@@ -22,6 +22,7 @@ from freamer_rl.data import (
     pamap2_features,
     synthetic_recording,
 )
+from freamer_rl.data.subject_profiles import profile_recording
 
 logger = logging.getLogger(__name__)
 
@@ -120,10 +121,13 @@ def _load_tables(
     synthetic_duration_s: float,
     data_seed: int,
     dyn: HealthDynamics,
+    varied: bool = False,
 ) -> _SubjectTables:
     if data_dir is None:
         chosen = subjects or DEFAULT_SYNTHETIC_SUBJECTS
-        recordings = {s: synthetic_recording(s, duration_s=synthetic_duration_s, seed=data_seed) for s in chosen}
+        # varied: each subject follows its own activity plan (freamer_rl.data.subject_profiles), else the protocol
+        make = profile_recording if varied else synthetic_recording
+        recordings = {s: make(s, duration_s=synthetic_duration_s, seed=data_seed) for s in chosen}
     else:
         recordings = load_pamap2_protocol(data_dir, subjects)
     feats = {s: pamap2_features(r, rate_hz=rate_hz) for s, r in recordings.items()}

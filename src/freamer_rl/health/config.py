@@ -25,6 +25,7 @@ from freamer_rl.config.checks import (
 )
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, load_config
 from freamer_rl.config.sections import BASE_RANGES, LoggingConfig, RunConfig
+from freamer_rl.data import PROTOCOL_SUBJECTS
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
 
@@ -39,6 +40,7 @@ __all__ = [
     "HealthRunConfig",
     "HealthConfig",
     "validate_health_config",
+    "check_subjects",
     "load_health_config",
     "health_config_from_dict",
     "health_config_to_dict",
@@ -52,6 +54,8 @@ OBS_KEYS: tuple[str, ...] = ("imu", "hr_features")
 #: Number of actions the schema validates ``collect.explore_probs`` against; :func:`~freamer_rl.health.agent.env_dims`
 #: checks it against the env's action spec when an agent is built.
 NUM_ACTIONS = 5
+#: env id of synthetic subjects with their own activity plans (``freamer_rl_envs.health.VARIED_ENV_ID``)
+VARIED_ENV_ID = "pamap2-health-varied"
 
 
 # ----------------------------------------------------------------------------------------------------------------------
@@ -62,9 +66,9 @@ class HealthEnvConfig:
     """Real health env (``freamer_rl_envs.health.make_health_env`` through the ``health`` adapter entry point)."""
 
     adapter: str = "health"
-    id: str = "pamap2-health"
+    id: str = "pamap2-health"  # pamap2-health-varied: synthetic subjects with their own activity plans
     data_dir: str | None = None  # PAMAP2 root or Protocol folder; None = embedded synthetic subjects
-    subjects: list[int] | None = None
+    subjects: list[int] | None = None  # training subjects (101-109); None: all files found (real) or 101-103
     num_envs: int = 8  # batch of the training env (simultaneous subjects)
     episode_length: int = 120  # steps (0.2 Hz: 10 minutes)
     rate_hz: float = 0.2  # 5 s a step, so that the imagination horizon spans the heart-rate dynamics
@@ -161,6 +165,9 @@ class HealthEvalConfig:
     every: int = 0  # evaluate every N iterations (0: only at the end)
     deterministic: bool = True  # act with the mode of the policy
     seed: int = 12345  # env seed of the evaluation episodes: the same episodes for every run, seed and encoder
+    # held-out subjects of the evaluation (leave-one-subject-out: the subject env.subjects leaves out); None: the
+    # training subjects. The reference policies and the oracle (freamer_rl.health.reference) read the same field
+    subjects: list[int] | None = None
     mse_windows: int = 64
     horizon_context: int = 8
     horizon_max: int = 48
@@ -290,6 +297,7 @@ def validate_health_config(cfg: HealthConfig) -> None:
     if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
         raise ConfigError(f"run.name: {problem}")
     check_logging(cfg.logging)
+    check_subjects(cfg)
     if cfg.encoder.kind not in ENCODER_KINDS:
         raise ConfigError(f"encoder.kind: expected one of {', '.join(ENCODER_KINDS)}, got {cfg.encoder.kind!r}")
     for m in cfg.encoder.gate_init:
@@ -338,6 +346,44 @@ def validate_health_config(cfg: HealthConfig) -> None:
         raise ConfigError(str(err)) from None
     if cfg.collect.prefill_frames == 0 and cfg.collect.iterations == 0:
         raise ConfigError("collect: prefill_frames and iterations are both 0 (nothing to train on)")
+
+
+def _subject_list_problem(subjects: list[int]) -> str | None:
+    if not subjects:
+        return "an empty list (null for the default subjects)"
+    bad = [s for s in subjects if s not in PROTOCOL_SUBJECTS]
+    if bad:
+        return f"expected PAMAP2 subject numbers in {PROTOCOL_SUBJECTS[0]}..{PROTOCOL_SUBJECTS[-1]}, got {bad}"
+    if len(set(subjects)) != len(subjects):
+        return f"a subject is listed twice in {subjects}"
+    return None
+
+
+def check_subjects(cfg: HealthConfig) -> None:
+    """``env.subjects`` / ``eval.subjects``: PAMAP2 numbers (101-109), each once; held-out evaluation subjects need
+    an explicit training list that does not contain them (a subject in both is a leak, refused in one line)."""
+    for name, subjects in (("env.subjects", cfg.env.subjects), ("eval.subjects", cfg.eval.subjects)):
+        if subjects is not None and (problem := _subject_list_problem(subjects)):
+            raise ConfigError(f"{name}: {problem}")
+    if cfg.env.id == VARIED_ENV_ID and cfg.env.data_dir is not None:
+        raise ConfigError(
+            f"env.id {VARIED_ENV_ID!r} varies the synthetic subjects' activities, env.data_dir "
+            f"{cfg.env.data_dir!r} reads real ones: use env.id pamap2-health with real data"
+        )
+    held_out = cfg.eval.subjects
+    if held_out is None:
+        return
+    if cfg.env.subjects is None:
+        raise ConfigError(
+            f"eval.subjects {held_out} needs env.subjects listed: null trains on every subject found (real data) or "
+            "on 101-103 (synthetic), so the held-out subjects may be trained on"
+        )
+    leak = sorted(set(held_out) & set(cfg.env.subjects))
+    if leak:
+        raise ConfigError(
+            f"eval.subjects {held_out} and env.subjects {cfg.env.subjects} share {leak}: a held-out subject that is "
+            "trained on is a leak (leave eval.subjects null to evaluate on the training subjects)"
+        )
 
 
 def explore_probs(probs: list[float] | None, num_actions: int, name: str) -> torch.Tensor:

@@ -7,6 +7,11 @@ rate > 160 bpm (violations, counted by the env) and the length, read at each env
 metrics (:mod:`freamer_rl.world_model.metrics`) are computed on windows cut from those held-out episodes:
 reconstruction MSE over ``eval.mse_windows`` windows of ``world_model.seq_len`` steps, the imagination horizon over
 ``eval.horizon_windows`` windows of ``eval.horizon_context + eval.horizon_max`` steps.
+
+Held-out subjects (leave-one-subject-out): with ``eval.subjects`` set, the evaluation env draws its episodes from
+those subjects only (a run trains on ``env.subjects``); null evaluates on the training subjects. Every evaluation
+env, the reference policies' and the oracle's included (:mod:`freamer_rl.health.reference`), is built by
+:func:`make_eval_env`, so "fraction of the oracle" compares the same subjects and episodes.
 """
 
 from __future__ import annotations
@@ -16,13 +21,16 @@ from typing import Any
 
 import torch
 from tensordict import TensorDictBase
-from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
+from torchrl.envs.transforms import TensorDictPrimer
 
 from freamer_rl.health.agent import HealthAgent, load_agent, make_health_env
 from freamer_rl.world_model.metrics import imagination_horizon, reconstruction_mse, sample_windows
 
 __all__ = [
     "STORE_KEYS",
+    "eval_subjects",
+    "make_eval_env",
     "episode_stats",
     "rollout_metrics",
     "evaluate_policy",
@@ -44,6 +52,27 @@ STORE_KEYS = (
     ("next", "truncated"),
     ("collector", "traj_ids"),
 )
+
+
+def eval_subjects(cfg: Any) -> list[int] | None:
+    """The subjects an evaluation draws its episodes from: ``eval.subjects``, else ``env.subjects`` (``None``: the
+    env's default set)."""
+    held_out = cfg.eval.subjects
+    return list(held_out) if held_out is not None else cfg.env.subjects
+
+
+def make_eval_env(
+    cfg: Any, *, num_envs: int | None = None, seed: int | None = None, primer: TensorDictPrimer | None = None
+) -> EnvBase:
+    """The real env of an evaluation: :func:`~freamer_rl.health.agent.make_health_env` with ``num_envs`` (default
+    ``eval.num_envs``) episodes from env ``seed`` (default ``eval.seed``) over :func:`eval_subjects`."""
+    return make_health_env(
+        cfg,
+        num_envs=num_envs or cfg.eval.num_envs,
+        seed=cfg.eval.seed if seed is None else seed,
+        primer=primer,
+        subjects=eval_subjects(cfg),
+    )
 
 
 def episode_stats(data: TensorDictBase) -> dict[str, float]:
@@ -91,7 +120,7 @@ def evaluate_policy(
     agent: HealthAgent, *, num_envs: int | None = None, seed: int = 10_000, deterministic: bool = True
 ) -> tuple[dict[str, float], TensorDictBase]:
     """Roll the policy in the real env: ``num_envs`` episodes of ``env.episode_length`` steps (one per env, from a
-    fresh env with ``seed``). Returns (metrics, rollout ``[num_envs, episode_length]``).
+    fresh env with ``seed``, over :func:`eval_subjects`). Returns (metrics, rollout ``[num_envs, episode_length]``).
 
     Metrics: ``return_mean``/``return_std`` (over episodes), ``violations_mean`` (steps with heart rate > 160
     bpm per episode), ``length_mean``, ``episodes``; read at each env's first ``("next", "done")``.
@@ -99,7 +128,7 @@ def evaluate_policy(
     cfg = agent.cfg
     n = num_envs or cfg.eval.num_envs
     policy = agent.policy(sample_latent=False)
-    env = make_health_env(cfg, num_envs=n, seed=seed, primer=policy.make_tensordict_primer())
+    env = make_eval_env(cfg, num_envs=n, seed=seed, primer=policy.make_tensordict_primer())
     agent.world_model.eval()
     etype = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with set_exploration_type(etype):

@@ -3,8 +3,8 @@
 Every reference policy is a :class:`~tensordict.nn.TensorDictModuleBase` that reads the real env's observations and
 writes ``"action"`` (int64 ``[*B]``); :func:`evaluate_reference` rolls it with exactly the protocol of
 :func:`freamer_rl.health.evaluation.evaluate_policy` (a fresh env of ``eval.num_envs`` episodes, env seed
-``eval.seed``, ``env.episode_length`` steps, metrics read at each env's first ``done``), so the numbers are directly
-comparable with a run's ``eval_return_mean``.
+``eval.seed``, the evaluation subjects ``eval.subjects`` when set, ``env.episode_length`` steps, metrics read at
+each env's first ``done``), so the numbers are directly comparable with a run's ``eval_return_mean``.
 
 Policies (:data:`REFERENCE_POLICIES`):
 
@@ -32,8 +32,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
-from freamer_rl.health.agent import make_health_env
-from freamer_rl.health.evaluation import rollout_metrics
+from freamer_rl.health.evaluation import make_eval_env, rollout_metrics
 from freamer_rl.health.oracle import ORACLE_DEFAULTS, OraclePlanner
 
 logger = logging.getLogger(__name__)
@@ -149,12 +148,12 @@ def reference_rollout(
     cfg: Any, policy: str | TensorDictModuleBase, *, num_envs: int | None = None, seed: int | None = None
 ) -> TensorDictBase:
     """The evaluation protocol's rollout ``[num_envs, env.episode_length]`` of a reference policy: a fresh env of
-    ``num_envs`` (default ``eval.num_envs``) episodes from env ``seed`` (default ``eval.seed``), as
-    :func:`freamer_rl.health.evaluation.evaluate_policy` rolls a trained policy. An
+    ``num_envs`` (default ``eval.num_envs``) episodes from env ``seed`` (default ``eval.seed``) over the evaluation
+    subjects (``eval.subjects``, else ``env.subjects``), built by :func:`freamer_rl.health.evaluation.make_eval_env`
+    as :func:`freamer_rl.health.evaluation.evaluate_policy` builds a trained policy's. An
     :class:`~freamer_rl.health.oracle.OraclePlanner` is bound to that env for the rollout."""
     module = make_reference_policy(policy) if isinstance(policy, str) else policy
-    n = num_envs or cfg.eval.num_envs
-    env = make_health_env(cfg, num_envs=n, seed=cfg.eval.seed if seed is None else seed)
+    env = make_eval_env(cfg, num_envs=num_envs, seed=seed)
     if isinstance(module, OraclePlanner):
         module.bind(env)
     try:

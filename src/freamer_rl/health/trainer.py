@@ -53,7 +53,7 @@ from freamer_rl.config.sections import CollectorConfig, OptimConfig
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, parameter_table, save_agent
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
-from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, evaluate_agent
+from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, eval_subjects, evaluate_agent
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.run.collection import make_collector
 from freamer_rl.run.lifecycle import RunLifecycle
@@ -390,6 +390,9 @@ class HealthTrainer:
             "algorithm": TRAINER_LABEL,
             "encoder": cfg.encoder.kind,
             "seed": cfg.run.seed,
+            # the subjects trained on and evaluated on (leave-one-subject-out folds; None: the env's default set)
+            "train_subjects": cfg.env.subjects,
+            "eval_subjects": eval_subjects(cfg),
             "iterations": cfg.collect.iterations,
             "frames": self.frames,
             "wall_time_s": wall,  # from the trainer's start (model build included), all attempts
