@@ -30,6 +30,10 @@ fps = frames / time; overall = frames / (collection + update). Per round, a meth
 together; the tables give the mean and min-max over rounds, and the ratios are the mean (min-max) of the per-round
 ratios. Writes ``results.md``, ``results.csv`` (one row per configuration and method) and ``rounds.csv`` (every
 round) into ``--out`` (default benchmarks/results/throughput/).
+
+``--suite crafter`` measures Crafter instead, with the same job runner, summary and CSV code: the raw ``crafter.Env``,
+the adapter's batched env, FreamerV1 (``recipes/crafter_cpu.yaml``) and PPO-CNN training, every rate also as a ratio
+to the raw env's steps/s of the same round (no older commit). What it times: ``throughput_crafter.py``.
 """
 
 from __future__ import annotations
@@ -46,6 +50,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import throughput_crafter as tc  # benchmarks/ is on sys.path: this script's own folder
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RECIPE = ROOT / "recipes" / "minigrid_multiroom_n2s4.yaml"
@@ -64,23 +70,10 @@ CSV_FIELDS = [
     *[f"{m}_{s}" for m in METRICS for s in ("mean", "min", "max")],
     *[f"{m.removesuffix('_fps')}_vs_{o}" for o in ("old", "baseline") for m in METRICS],
 ]
-ROUND_FIELDS = [
-    "round",
-    "threads",
-    "num_envs",
-    "method",
-    "frames",
-    "collect_s",
-    "advantage_s",
-    "update_s",
-    "collect_fps",
-    "update_fps",
-    "overall_fps",
-    "wall_s",
-    "num_threads",
-    "source",
-    "error",
-]
+ROUND_FIELDS = (
+    "round threads num_envs method frames collect_s advantage_s update_s collect_fps update_fps overall_fps wall_s "
+    "num_threads source error"
+).split()
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -170,8 +163,9 @@ def _time_freamer(spec: dict) -> dict:
 
 
 def _time_baseline(spec: dict) -> dict:
-    """TorchRL's PPO-MLP (``trainer: ppo_baseline``, :data:`BASELINE_RECIPE`) timed like FreamerV1: collection =
-    ``next()`` on its collector, update = ``learn`` (GAE with the value network, then the PPO epochs)."""
+    """A ``trainer: ppo_baseline`` recipe (``spec["recipe"]``, default the PPO-MLP of :data:`BASELINE_RECIPE`) timed
+    like FreamerV1: collection = ``next()`` on its collector, update = ``learn`` (GAE with the value network, then
+    the PPO epochs)."""
     import torch
 
     torch.set_num_threads(spec["threads"])
@@ -179,7 +173,8 @@ def _time_baseline(spec: dict) -> dict:
     from freamer_rl.trainers.registry import load_config
 
     k, warmup = spec["batches"], spec["warmup"]
-    cfg = load_config(BASELINE_RECIPE, spec["overrides"])
+    recipe = Path(spec.get("recipe", BASELINE_RECIPE))
+    cfg = load_config(recipe, spec["overrides"])
     run_dir = Path(tempfile.mkdtemp(prefix="throughput_baseline_"))
     try:
         trainer = PPOBaselineTrainer(cfg, run_dir / "run", resume=False)
@@ -203,18 +198,25 @@ def _time_baseline(spec: dict) -> dict:
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
     out = _fps_summary(frames, collect, [0.0] * len(collect), update)
-    out.update(source=str(BASELINE_RECIPE.relative_to(ROOT)), num_threads=torch.get_num_threads())
+    source = recipe.relative_to(ROOT) if recipe.is_relative_to(ROOT) else recipe
+    out.update(source=str(source), num_threads=torch.get_num_threads())
     return out
+
+
+def measure(spec: dict) -> dict:
+    """One measurement (what a worker subprocess runs), by ``spec["method"]``, with its wall time."""
+    timers = {"baseline": _time_baseline, "ppo_cnn": _time_baseline, **tc.TIMERS}  # tc: raw_env, adapter_env
+    t0 = time.perf_counter()
+    result = timers.get(spec["method"], _time_freamer)(spec)  # current, old, freamer: FreamerV1
+    result["wall_s"] = time.perf_counter() - t0
+    return result
 
 
 def _worker(spec: dict) -> None:
     import logging
 
     logging.basicConfig(level=logging.WARNING)
-    t0 = time.perf_counter()
-    result = _time_baseline(spec) if spec["method"] == "baseline" else _time_freamer(spec)
-    result["wall_s"] = time.perf_counter() - t0
-    print(RESULT_TAG + json.dumps(result), flush=True)
+    print(RESULT_TAG + json.dumps(measure(spec)), flush=True)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -292,6 +294,29 @@ def _check_config(recipe: str, overrides: list[str]):
         return None, str(err)
 
 
+def valid_configs(recipe: Path, threads: list[int], num_envs: list[int] | None, overrides: list[str]):
+    """``(configs, notes, config)``: the (threads, env.num_envs) pairs the recipe accepts (``num_envs`` None: the
+    recipe's own), a note for each env count it refuses, and the last valid config; SystemExit when none is."""
+    if num_envs is None:
+        cfg, err = _check_config(str(recipe), overrides)
+        if err is not None:
+            raise SystemExit(f"{recipe}: {err}")
+        num_envs = [cfg.env.num_envs]
+    configs, notes, cfg = [], [], None
+    for t in threads:
+        for n in num_envs:
+            got, err = _check_config(str(recipe), [*overrides, f"run.threads={t}", f"env.num_envs={n}"])
+            if err is not None:
+                if t == threads[0]:
+                    notes.append(f"env.num_envs={n} skipped: {err}")
+                continue
+            configs.append((t, n))
+            cfg = got
+    if not configs:
+        raise SystemExit("no valid configuration: " + "; ".join(notes))
+    return configs, notes, cfg
+
+
 def _csv_value(v):
     return f"{v:.4g}" if isinstance(v, float) and abs(v) < 100 else f"{v:.1f}" if isinstance(v, float) else v
 
@@ -307,9 +332,19 @@ def _fmt(values: list[float], nd: int = 0) -> str:
     return f"{m:,.{nd}f} ({lo:,.{nd}f}-{hi:,.{nd}f})" if len(values) > 1 else f"{m:,.{nd}f}"
 
 
-def summarise(rounds: list[dict], configs: list[tuple[int, int]], methods: list[str], codes: dict) -> list[dict]:
-    """One row per (threads, num_envs, method): mean/min/max over rounds, and for ``current`` the per-round ratios
-    against ``old`` and ``baseline`` (mean over rounds, plus the lists for the Markdown)."""
+def summarise(
+    rounds: list[dict],
+    configs: list[tuple[int, int]],
+    methods: list[str],
+    codes: dict,
+    pairs: dict[str, tuple[str, ...]] | None = None,
+    reference: str | None = None,
+) -> list[dict]:
+    """One row per (threads, num_envs, method): mean/min/max over rounds of each metric a method reports (an env
+    measurement has no update), and for each method of ``pairs`` (default ``current`` against ``old`` and
+    ``baseline``) the per-round ratios ``metric / other's metric`` (``other's reference metric`` when ``reference``
+    is given): the mean over rounds, plus the lists for the Markdown."""
+    pairs = {"current": ("old", "baseline")} if pairs is None else pairs
     ok = [r for r in rounds if not r.get("error")]
     rows = []
     for t, n in configs:
@@ -322,31 +357,59 @@ def summarise(rounds: list[dict], configs: list[tuple[int, int]], methods: list[
                 continue
             row = {"threads": t, "num_envs": n, "method": m, "code": codes[m], "rounds": len(rs)}
             for metric in METRICS:
-                row[f"{metric}_mean"], row[f"{metric}_min"], row[f"{metric}_max"] = _stats([r[metric] for r in rs])
-                row[f"_{metric}"] = [r[metric] for r in rs]
-            if m == "current":
-                for other in ("old", "baseline"):
-                    for metric in METRICS:
-                        ratios = [by[m][i][metric] / by[other][i][metric] for i in by[m] if i in by.get(other, {})]
-                        key = f"{metric.removesuffix('_fps')}_vs_{other}"
-                        row[key] = statistics.mean(ratios) if ratios else None
-                        row[f"_{key}"] = ratios
+                values = [r[metric] for r in rs if r.get(metric) is not None]
+                stats = _stats(values) if values else (None, None, None)
+                row[f"{metric}_mean"], row[f"{metric}_min"], row[f"{metric}_max"] = stats
+                row[f"_{metric}"] = values
+            for other in pairs.get(m, ()):
+                for metric in METRICS:
+                    ref = reference or metric
+                    ratios = [
+                        r[metric] / by[other][i][ref]
+                        for i, r in by[m].items()
+                        if r.get(metric) is not None and i in by.get(other, {})
+                    ]
+                    key = f"{metric.removesuffix('_fps')}_vs_{other}"
+                    row[key] = statistics.mean(ratios) if ratios else None
+                    row[f"_{key}"] = ratios
             rows.append(row)
     return rows
 
 
-def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Path, meta: dict) -> str:
+def write_csvs(rows: list[dict], rounds: list[dict], out: Path, meta: dict, fields: list[str], extra=()) -> None:
+    """``rounds.csv`` (every measurement: :data:`ROUND_FIELDS` + ``extra``) and ``results.csv`` (one row per
+    configuration and method: ``fields``)."""
     out.mkdir(parents=True, exist_ok=True)
     with (out / "rounds.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=ROUND_FIELDS, extrasaction="ignore")
+        w = csv.DictWriter(f, fieldnames=[*ROUND_FIELDS, *extra], extrasaction="ignore")
         w.writeheader()
         w.writerows({k: _csv_value(v) for k, v in r.items()} for r in rounds)
     with (out / "results.csv").open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=CSV_FIELDS, extrasaction="ignore")
+        w = csv.DictWriter(f, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
         for r in rows:
             r = {**r, "batches": meta["batches"], "frames_per_batch": meta["frames_per_batch"]}
             w.writerow({k: _csv_value(v) for k, v in r.items()})
+
+
+def _finish_report(lines: list[str], rounds: list[dict], notes: list[str], out: Path, meta: dict) -> str:
+    """Notes (and every failed measurement), the command; writes ``results.md``."""
+    errors = [r for r in rounds if r.get("error")]
+    if notes or errors:
+        lines += ["", "Notes:", ""]
+        lines += [f"- {n}" for n in notes]
+        lines += [
+            f"- round {r['round']}, {r['threads']} thread(s), {r['num_envs']} envs, {r['method']}: {r['error']}"
+            for r in errors
+        ]
+    lines += ["", f"Command: `{meta['command']}`"]
+    text = "\n".join(lines) + "\n"
+    (out / "results.md").write_text(text)
+    return text
+
+
+def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Path, meta: dict) -> str:
+    write_csvs(rows, rounds, out, meta, CSV_FIELDS)
     names = {"current": "FreamerV1 current", "old": "FreamerV1 old", "baseline": "TorchRL PPO-MLP"}
     lines = [
         "# Throughput: FreamerV1 N2-S4 recipe vs an older commit vs TorchRL PPO-MLP",
@@ -385,18 +448,7 @@ def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Pa
                 _fmt(r.get(f"_{m.removesuffix('_fps')}_vs_{o}") or [], 2) for o in ("old", "baseline") for m in METRICS
             ]
             lines.append(f"| {r['threads']} | {r['num_envs']} | " + " | ".join(cells) + " |")
-    errors = [r for r in rounds if r.get("error")]
-    if notes or errors:
-        lines += ["", "Notes:", ""]
-        lines += [f"- {n}" for n in notes]
-        lines += [
-            f"- round {r['round']}, {r['threads']} thread(s), {r['num_envs']} envs, {r['method']}: {r['error']}"
-            for r in errors
-        ]
-    lines += ["", f"Command: `{meta['command']}`"]
-    text = "\n".join(lines) + "\n"
-    (out / "results.md").write_text(text)
-    return text
+    return _finish_report(lines, rounds, notes, out, meta)
 
 
 def _load() -> str:
@@ -418,118 +470,124 @@ def _machine() -> str:
     return f"{os.cpu_count()} CPU cores ({cpu})"
 
 
-def main(argv: list[str] | None = None) -> str:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--rounds", type=int, default=3)
-    ap.add_argument("--batches", type=int, default=4, help="timed batches per measurement (after the warm-up)")
-    ap.add_argument("--warmup", type=int, default=1, help="untimed batches first")
-    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
-    ap.add_argument("--num-envs", type=int, nargs="+", default=[8, 16, 32])
-    ap.add_argument("--old-commit", default="411f9a7")
-    ap.add_argument("--skip-old", action="store_true", help="measure only the current code and the baseline")
-    ap.add_argument("--skip-baseline", action="store_true")
-    ap.add_argument("--recipe", default=str(DEFAULT_RECIPE))
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--job-timeout", type=float, default=900.0, help="seconds per measurement subprocess")
-    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "throughput"))
-    ap.add_argument("--worker", help=argparse.SUPPRESS)
-    ap.add_argument("overrides", nargs="*", help="dotted overrides for the FreamerV1 recipe (both codes)")
-    args = ap.parse_intermixed_args(argv)
-    if args.worker:
-        _worker(json.loads(args.worker))
-        return ""
+def write_crafter_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Path, meta: dict) -> str:
+    """The Crafter suite's ``results.md`` / ``results.csv`` / ``rounds.csv`` (tables: ``throughput_crafter``)."""
+    write_csvs(rows, rounds, out, meta, tc.CSV_FIELDS, tc.ROUND_EXTRA)
+    lines, raw_notes = tc.report_lines(rows, rounds, meta, _fmt)
+    return _finish_report(lines, rounds, [*raw_notes, *notes], out, meta)
+
+
+def _minigrid_plan(args, fixed: list[str]) -> dict:
+    """The N2-S4 suite: configurations (threads x env.num_envs), methods and one round's jobs
+    ``((threads, num_envs, method), spec, tree)``; ``tmp`` holds the older commit's tree."""
     methods = ["current"] + ([] if args.skip_old else ["old"]) + ([] if args.skip_baseline else ["baseline"])
-    fixed = ["logging.progress_bar=false", "logging.checkpoint_every_frames=1000000000", f"run.seed={args.seed}"]
-    configs, notes, cfg = [], [], None
-    for t in args.threads:
-        for n in args.num_envs:
-            got, err = _check_config(args.recipe, [*fixed, *args.overrides, f"run.threads={t}", f"env.num_envs={n}"])
-            if err is not None:
-                if t == args.threads[0]:
-                    notes.append(f"env.num_envs={n} skipped: {err}")
-                continue
-            configs.append((t, n))
-            cfg = got
-    if not configs:
-        raise SystemExit("no valid configuration: " + "; ".join(notes))
+    recipe = Path(args.recipe or DEFAULT_RECIPE).resolve()
+    configs, notes, cfg = valid_configs(recipe, args.threads, args.num_envs or [8, 16, 32], [*fixed, *args.overrides])
     fpb, env_id = cfg.ppo.frames_per_batch, cfg.env.id  # the baseline gets the recipe's env and batch size
+    total = f"run.total_frames={(args.warmup + args.batches) * fpb}"
     codes = {"current": _current_code(), "baseline": "ppo_baseline"}
     tmp = Path(tempfile.mkdtemp(prefix="throughput_old_"))
-    trees = {"current": ROOT, "baseline": None}
-    recipe = Path(args.recipe).resolve()
-    recipes = {"current": str(recipe)}
+    trees, recipes = {"current": ROOT, "baseline": None}, {"current": str(recipe)}
     if "old" in methods:
-        codes["old"] = extract_commit(args.old_commit, tmp)
-        trees["old"] = tmp
+        codes["old"], trees["old"] = extract_commit(args.old_commit, tmp), tmp
         recipes["old"] = _old_recipe(recipe, tmp)
         if recipes["old"] != str(recipe):
             notes.append(
                 f"The older commit runs its own copy of the recipe ({recipe.relative_to(ROOT)} at "
                 f"{codes['old']}): each commit's default recipe, which the old config loader can read."
             )
-    command = " ".join(["python benchmarks/throughput_benchmark.py", *(argv if argv is not None else sys.argv[1:])])
+    jobs = []
+    for t, n in configs:
+        for m in methods:
+            spec = {"method": m, "threads": t, "num_envs": n, "batches": args.batches, "warmup": args.warmup}
+            spec["seed"] = args.seed
+            if m == "baseline":
+                base = [f"env.id={env_id}", f"ppo.frames_per_batch={fpb}", *args.baseline_override]
+                spec.update(recipe=str(BASELINE_RECIPE), overrides=[*fixed, *base, f"run.threads={t}", total])
+            else:
+                sized = [f"run.threads={t}", f"env.num_envs={n}", total]
+                spec.update(recipe=recipes[m], tree=str(trees[m]), patch_envs=m == "old")
+                spec["overrides"] = [*fixed, *args.overrides, *sized]
+            jobs.append(((t, n, m), spec, trees[m]))
+    return dict(configs=configs, methods=methods, codes=codes, notes=notes, jobs=jobs, frames_per_batch=fpb, tmp=tmp)
+
+
+def _run_rounds(jobs: list, rounds: int, timeout: float) -> list[dict]:
+    """Every job of ``jobs`` once per round, one at a time, in order (so each round interleaves every method)."""
+    results: list[dict] = []
+    t_start = time.perf_counter()
+    for rnd in range(rounds):
+        for (t, n, m), spec, tree in jobs:
+            res = run_job(spec, tree, timeout)
+            results.append({"round": rnd, "threads": t, "num_envs": n, "method": m, **res})
+            rates = [f"{k.removesuffix('_fps')} {res[k]:.0f}" for k in METRICS if res.get(k) is not None]
+            msg = res.get("error") or ", ".join(rates) + " fps"
+            print(f"[{time.perf_counter() - t_start:6.0f}s] round {rnd} | {t} thread(s) | {n} envs | {m}: {msg}")
+            sys.stdout.flush()
+    return results
+
+
+def _parse(argv: list[str] | None) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--suite", choices=("minigrid", "crafter"), default="minigrid", help="N2-S4 (default) or Crafter")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--batches", type=int, default=4, help="timed batches per measurement (after the warm-up)")
+    ap.add_argument("--warmup", type=int, default=1, help="untimed batches first")
+    ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--num-envs", type=int, nargs="+", help="default: 8 16 32 (minigrid), the recipe's (crafter)")
+    ap.add_argument("--old-commit", default="411f9a7")
+    ap.add_argument("--skip-old", action="store_true", help="measure only the current code and the baseline")
+    ap.add_argument("--skip-baseline", action="store_true")
+    ap.add_argument("--recipe", help="FreamerV1 recipe (default: the suite's)")
+    ap.add_argument(
+        "--baseline-override", action="append", default=[], help="a dotted override for the baseline (repeatable)"
+    )
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--job-timeout", type=float, default=900.0, help="seconds per measurement subprocess")
+    ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "throughput"))
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("overrides", nargs="*", help="dotted overrides for the FreamerV1 recipe (both codes)")
+    return ap.parse_intermixed_args(argv)
+
+
+def main(argv: list[str] | None = None) -> str:
+    args = _parse(argv)
+    if args.worker:
+        _worker(json.loads(args.worker))
+        return ""
+    fixed = ["logging.progress_bar=false", "logging.checkpoint_every_frames=1000000000", f"run.seed={args.seed}"]
+    if args.suite == "crafter":
+        plan = tc.plan(args, fixed, valid_configs, _current_code())
+    else:
+        plan = _minigrid_plan(args, fixed)
     meta = {
         "date": time.strftime("%Y-%m-%d %H:%M"),
         "machine": _machine(),
         "load_start": _load(),
-        "codes": codes,
+        "codes": plan["codes"],
         "rounds": args.rounds,
         "batches": args.batches,
         "warmup": args.warmup,
-        "frames_per_batch": fpb,
+        "frames_per_batch": plan["frames_per_batch"],
         "overrides": " ".join(args.overrides),
-        "command": command,
+        "command": " ".join(["python benchmarks/throughput_benchmark.py", *(sys.argv[1:] if argv is None else argv)]),
     }
-    rounds: list[dict] = []
-    t_start = time.perf_counter()
     try:
-        for rnd in range(args.rounds):
-            for t, n in configs:
-                for m in methods:
-                    spec = {
-                        "method": m,
-                        "threads": t,
-                        "num_envs": n,
-                        "batches": args.batches,
-                        "warmup": args.warmup,
-                        "seed": args.seed,
-                    }
-                    if m == "baseline":
-                        spec["overrides"] = [
-                            *fixed,
-                            f"env.id={env_id}",
-                            f"ppo.frames_per_batch={fpb}",
-                            f"run.threads={t}",
-                            f"run.total_frames={(args.warmup + args.batches) * fpb}",
-                        ]
-                    else:
-                        spec.update(
-                            recipe=recipes[m],
-                            tree=str(trees[m]),
-                            patch_envs=m == "old",
-                            overrides=[
-                                *fixed,
-                                *args.overrides,
-                                f"run.threads={t}",
-                                f"env.num_envs={n}",
-                                f"run.total_frames={(args.warmup + args.batches) * fpb}",
-                            ],
-                        )
-                    res = run_job(spec, trees[m], args.job_timeout)
-                    rounds.append({"round": rnd, "threads": t, "num_envs": n, "method": m, **res})
-                    msg = res.get("error") or (
-                        f"collect {res['collect_fps']:.0f}, update {res['update_fps']:.0f}, "
-                        f"overall {res['overall_fps']:.0f} fps"
-                    )
-                    print(
-                        f"[{time.perf_counter() - t_start:6.0f}s] round {rnd} | {t} thread(s) | {n} envs | {m}: {msg}",
-                        flush=True,
-                    )
+        rounds = _run_rounds(plan["jobs"], args.rounds, args.job_timeout)
     finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if plan.get("tmp"):
+            shutil.rmtree(plan["tmp"], ignore_errors=True)
     meta["load_end"] = _load()
-    rows = summarise(rounds, configs, methods, codes)
-    text = write_report(rows, rounds, notes, Path(args.out), meta)
+    out = Path(args.out)
+    if args.suite == "crafter":
+        meta["recipe"] = str(
+            plan["recipe"].relative_to(ROOT) if plan["recipe"].is_relative_to(ROOT) else plan["recipe"]
+        )
+        rows = summarise(rounds, plan["configs"], plan["methods"], plan["codes"], tc.PAIRS, tc.REFERENCE)
+        text = write_crafter_report(rows, rounds, plan["notes"], out, meta)
+    else:
+        rows = summarise(rounds, plan["configs"], plan["methods"], plan["codes"])
+        text = write_report(rows, rounds, plan["notes"], out, meta)
     print(text)
     return text
 

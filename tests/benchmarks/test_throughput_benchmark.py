@@ -11,6 +11,7 @@ ROOT = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import throughput_benchmark as tb  # noqa: E402
+import throughput_crafter as tc  # noqa: E402
 
 
 def test_throughput_benchmark_writes_tables(tmp_path):
@@ -110,3 +111,60 @@ def test_old_commit_extracts_with_its_envs_package(tmp_path):
     assert sha.startswith("411f9a7")
     assert (tmp_path / "src" / "freamer_rl" / "train.py").is_file()
     assert (tmp_path / "envs" / "minigrid.py").is_file()
+
+
+def test_crafter_suite_writes_every_row_and_ratio(tmp_path, monkeypatch):
+    """``--suite crafter``, one round, one thread, 2 envs, one timed batch of 64 frames (eager, one epoch), both
+    trainers. The measurements run in this process (``measure``, what each worker subprocess runs): the subprocess
+    runner is the N2-S4 test's, and four interpreter starts would triple this test's time."""
+    pytest.importorskip("crafter")
+    monkeypatch.setattr(tb, "run_job", lambda spec, tree, timeout: tb.measure(spec))
+    small = ["ppo.minibatch_size=32", "ppo.epochs=1"]
+    argv = ["--suite", "crafter", "--rounds", "1", "--batches", "1", "--threads", "1", "--num-envs", "2"]
+    argv += ["--out", str(tmp_path), "model.compile=false", "ppo.frames_per_batch=64", *small]
+    text = tb.main([*argv, *[f"--baseline-override={o}" for o in small]])
+    assert (tmp_path / "results.md").read_text() == text
+    assert all(name in text for name in tc.NAMES.values()) and "raw env, 1 thread(s):" in text
+    with (tmp_path / "results.csv").open() as f:
+        rows = {r["method"]: r for r in csv.DictReader(f)}
+    assert list(rows) == list(tc.METHODS) and list(rows["freamer"]) == tc.CSV_FIELDS
+    raw = float(rows["raw_env"]["collect_fps_mean"])  # steps/s
+    assert raw > 0 and float(rows["adapter_env"]["collect_vs_raw_env"]) > 0
+    for m in tc.ENV_METHODS:
+        assert rows[m]["update_fps_mean"] == rows[m]["overall_fps_mean"] == ""  # an env has no update
+    for m in ("freamer", "ppo_cnn"):
+        r = {k: float(v) for k, v in rows[m].items() if k.endswith(("_mean", "_vs_raw_env", "_vs_adapter_env"))}
+        assert all(v > 0 for v in r.values()) and len(r) == 3 + len(tc.RATIO_FIELDS)
+        # overall = frames / (collection + update): below both parts' rates
+        assert r["overall_fps_mean"] < min(r["collect_fps_mean"], r["update_fps_mean"])
+        # one round: each ratio is the rate over the raw env's (or the adapter env's) steps/s of that round
+        assert r["overall_vs_raw_env"] == pytest.approx(r["overall_fps_mean"] / raw, rel=2e-3)
+        env = float(rows["adapter_env"]["collect_fps_mean"])
+        assert r["collect_vs_adapter_env"] == pytest.approx(r["collect_fps_mean"] / env, rel=2e-3)
+    with (tmp_path / "rounds.csv").open() as f:
+        rounds = list(csv.DictReader(f))
+    assert [r["method"] for r in rounds] == list(tc.METHODS) and all(r["error"] == "" for r in rounds)
+    assert float(rounds[0]["step_s"]) > 0 and int(rounds[0]["frames"]) == 64  # the raw env: one batch of steps
+
+
+def test_crafter_ratios_pair_rounds_against_the_raw_env(tmp_path):
+    """Made-up rounds: each training rate is divided by the raw env's steps/s of its own round."""
+    rounds = []
+    for rnd, (raw, env, fps) in enumerate([(200.0, 100.0, 40.0), (100.0, 50.0, 40.0)]):
+        rounds.append({"round": rnd, "method": "raw_env", "collect_fps": raw, "frames": 10, "step_s": 1.0})
+        rounds[-1].update(reset_s=1.0, resets=2)
+        rounds.append({"round": rnd, "method": "adapter_env", "collect_fps": env})
+        for m in ("freamer", "ppo_cnn"):
+            rounds.append({"round": rnd, "method": m, "collect_fps": fps, "update_fps": 2 * fps, "overall_fps": fps})
+    for r in rounds:
+        r.update(threads=1, num_envs=8)
+    rows = tb.summarise(rounds, [(1, 8)], list(tc.METHODS), dict.fromkeys(tc.METHODS, "x"), tc.PAIRS, tc.REFERENCE)
+    by = {r["method"]: r for r in rows}
+    assert by["freamer"]["overall_vs_raw_env"] == pytest.approx((0.2 + 0.4) / 2)  # not 40 / 150
+    assert by["freamer"]["update_vs_raw_env"] == pytest.approx((0.4 + 0.8) / 2)
+    assert by["freamer"]["collect_vs_adapter_env"] == pytest.approx((0.4 + 0.8) / 2)
+    assert by["adapter_env"]["collect_vs_raw_env"] == pytest.approx(0.5) and by["raw_env"]["update_fps_mean"] is None
+    meta = {"date": "now", "machine": "test", "load_start": "0", "load_end": "0", "rounds": 2, "batches": 1}
+    meta.update(codes=dict.fromkeys(tc.METHODS, "x"), warmup=1, frames_per_batch=64, overrides="", command="x")
+    text = tb.write_crafter_report(rows, rounds, [], tmp_path, {**meta, "recipe": "r.yaml"})
+    assert "0.30 (0.20-0.40)" in text and "100.00 ms per step, 0.50 s per reset, 4 resets in 20 steps" in text
