@@ -81,9 +81,10 @@ def test_write_erase_and_read_closed_form():
     torch.testing.assert_close(over, torch.stack([memory[0], add]))
 
 
-def test_step_reads_after_write_and_stays_bounded():
+@pytest.mark.parametrize("write", ["additive", "bounded"])
+def test_step_reads_after_write_and_stays_bounded(write):
     torch.manual_seed(0)
-    dnc = DNCMemory(D, N, W)
+    dnc = DNCMemory(D, N, W, write=write)
     mem = dnc.initial_memory((4,))
     for _ in range(50):
         x = torch.randn(4, D) * 1e3
@@ -94,7 +95,9 @@ def test_step_reads_after_write_and_stays_bounded():
     x = torch.randn(4, D)
     c = dnc.interface_vectors(x)
     w_w = dnc.content_weights(c["write_key"], mem, c["write_strength"])
-    m2 = dnc.write(mem, w_w, c["erase"], c["write_vector"], c["write_gate"])
+    m2 = (dnc.write_bounded if write == "bounded" else dnc.write)(
+        mem, w_w, c["erase"], c["write_vector"], c["write_gate"]
+    )
     r = dnc.read(m2, dnc.content_weights(c["read_key"], m2, c["read_strength"]))
     out, new = dnc.step(x, mem)
     torch.testing.assert_close(new, m2)
@@ -125,6 +128,112 @@ def test_memory_clamp_is_counted_and_logged(caplog):
     assert m.max() > 2.5 and unclamped.clip_events == 0  # the DNC update itself is not bounded
     with pytest.raises(ValueError, match="memory_clip"):
         DNCMemory(D, N, W, memory_clip=0.0)
+
+
+def test_bounded_write_closed_form():
+    memory = torch.tensor([[1.0, -0.5], [0.25, 0.75]])
+    w = torch.tensor([0.25, 0.75])
+    erase = torch.tensor([0.5, 1.0])
+    add = torch.tensor([-1.0, 0.5])
+    new = DNCMemory.write_bounded(memory, w, erase, add, torch.tensor(0.8))
+    # lambda = g w_i e_j: slot 0 [0.1, 0.2], slot 1 [0.3, 0.6]; M' = (1 - lambda) M + lambda a
+    expected = torch.tensor(
+        [[0.9 * 1.0 + 0.1 * -1.0, 0.8 * -0.5 + 0.2 * 0.5], [0.7 * 0.25 + 0.3 * -1.0, 0.4 * 0.75 + 0.6 * 0.5]]
+    )
+    torch.testing.assert_close(new, expected)
+    # erase 0 writes nothing (the additive write would add g w a); full erase, gate 1, one-hot: overwrite the slot
+    torch.testing.assert_close(DNCMemory.write_bounded(memory, w, torch.zeros(2), add, torch.tensor(1.0)), memory)
+    assert not torch.allclose(DNCMemory.write(memory, w, torch.zeros(2), add, torch.tensor(1.0)), memory)
+    over = DNCMemory.write_bounded(memory, torch.tensor([0.0, 1.0]), torch.ones(2), add, torch.tensor(1.0))
+    torch.testing.assert_close(over, torch.stack([memory[0], add]))
+
+
+def _extreme_controls(dnc: DNCMemory) -> None:
+    """Large random interface weights (gates and write vector near 0/1 and +-1, sharp keys) and an erase gate near 0
+    (logit -5): the case whose additive fixed point ``a / e`` lies far beyond the clamp."""
+    with torch.no_grad():
+        dnc.interface.weight.normal_(0.0, 3.0)
+        dnc.interface.weight[W + 1 : 2 * W + 1] = 0.0
+        dnc.interface.bias.view(-1)[W + 1 : 2 * W + 1] = -5.0
+
+
+def test_bounded_step_stays_in_unit_bound_where_additive_saturates():
+    torch.manual_seed(0)
+    bounded = DNCMemory(D, N, W, write="bounded")
+    _extreme_controls(bounded)
+    additive = DNCMemory(D, N, W, write="additive")
+    additive.load_state_dict({k: v for k, v in bounded.state_dict().items() if k != "write_code"})
+    mb, ma = bounded.initial_memory((8,)), additive.initial_memory((8,))
+    worst_b, worst_a = torch.zeros(()), torch.zeros(())
+    with torch.no_grad():
+        for _ in range(2_000):
+            x = torch.randn(8, D) * 5.0
+            _, mb = bounded.step(x, mb)
+            _, ma = additive.step(x, ma)
+            worst_b, worst_a = torch.maximum(worst_b, mb.abs().max()), torch.maximum(worst_a, ma.abs().max())
+    assert float(worst_b) <= 1.0 + 1e-6 and bounded.clip_events == 0
+    # the same controls drive the additive write to its clamp: the bound is the write's, not the inputs'
+    assert float(worst_a) == additive.memory_clip and additive.clip_events > 0
+
+
+def test_bounded_write_random_convex_steps():
+    """10,000 random steps of the write itself with worst-case gates (g = 1, e in {0, 1} or uniform, one-hot or
+    random weights, |a| = 1): never above 1."""
+    gen = torch.Generator().manual_seed(1)
+    memory, worst = torch.zeros(16, N, W), torch.zeros(())
+    for step in range(10_000):
+        weights = torch.softmax(torch.randn(16, N, generator=gen) * (100.0 if step % 2 else 1.0), -1)
+        erase = torch.rand(16, W, generator=gen)
+        erase = erase.round() if step % 3 == 0 else erase
+        add = torch.where(torch.rand(16, W, generator=gen) < 0.5, -1.0, 1.0)
+        memory = DNCMemory.write_bounded(memory, weights, erase, add, torch.ones(16))
+        worst = torch.maximum(worst, memory.abs().max())
+    assert 0.99 < float(worst) <= 1.0 + 1e-6
+
+
+def test_output_norm_is_a_layer_norm_of_e_aug():
+    torch.manual_seed(0)
+    dnc = DNCMemory(D, N, W, output_dim=5, output_norm=True)
+    x, mem = torch.randn(3, D) * 10.0, torch.rand(3, N, W)
+    out, new = dnc.step(x, mem)
+    plain = DNCMemory(D, N, W, output_dim=5)
+    plain.load_state_dict({k: v for k, v in dnc.state_dict().items() if not k.startswith("out_norm.")})
+    raw, new_plain = plain.step(x, mem)
+    torch.testing.assert_close(new, new_plain)
+    torch.testing.assert_close(
+        out, (raw - raw.mean(-1, keepdim=True)) / (raw.var(-1, unbiased=False, keepdim=True) + 1e-5).sqrt()
+    )
+    assert {"out_norm.weight", "out_norm.bias"} <= set(dnc.state_dict())
+
+
+def test_write_choice_travels_with_the_state_dict(caplog):
+    torch.manual_seed(0)
+    trained = DNCMemory(D, N, W, write="additive")
+    legacy = {k: v for k, v in trained.state_dict().items() if k != "write_code"}  # a checkpoint of before the choice
+    built = DNCMemory(D, N, W, write="bounded")
+    with caplog.at_level("WARNING", logger="freamer_rl.layers.dnc"):
+        built.load_state_dict(legacy)
+    assert built.write_mode == "additive" and "predates" in caplog.text and "model.dnc.write" in caplog.text
+    x, mem = torch.randn(2, D), torch.rand(2, N, W)
+    torch.testing.assert_close(built.step(x, mem), trained.step(x, mem))
+    # a state that records bounded loads as bounded into a module built additive
+    again = DNCMemory(D, N, W)
+    again.load_state_dict(DNCMemory(D, N, W, write="bounded").state_dict())
+    assert again.write_mode == "bounded" and int(again.write_code) == 1
+    with pytest.raises(RuntimeError, match="write_code"):
+        again.load_state_dict({**legacy, "write_code": torch.tensor(7, dtype=torch.uint8)})
+    with pytest.raises(ValueError, match="write must be one of additive, bounded"):
+        DNCMemory(D, N, W, write="convex")
+
+
+def test_bounded_step_under_vmap_matches_batched():
+    torch.manual_seed(0)
+    dnc = DNCMemory(D, N, W, write="bounded", output_norm=True)
+    x, mem = torch.randn(3, D), torch.rand(3, N, W) * 2 - 1
+    out_v, mem_v = torch.vmap(dnc.step)(x, mem)
+    out_b, mem_b = dnc.step(x, mem)
+    torch.testing.assert_close(out_v, out_b)
+    torch.testing.assert_close(mem_v, mem_b)
 
 
 def test_clamp_counting_is_skipped_under_vmap():

@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Any
 
 from freamer_rl.errors import ConfigError
+from freamer_rl.layers.dnc import WRITES
 from freamer_rl.layers.flow_matching import RELIABILITY_MODES
 from freamer_rl.model.factory import FUSIONS, PLACEMENTS
 from freamer_rl.model.modalities import MODALITIES
@@ -78,6 +79,8 @@ def check_model_names(model: Any) -> None:
             f"model.flow.placement: expected one of {', '.join(PLACEMENTS)}, got {model.flow.placement!r}"
         )
     _check_flow_choices(model.flow)
+    if model.dnc.write not in WRITES:
+        raise ConfigError(f"model.dnc.write: expected one of {', '.join(WRITES)}, got {model.dnc.write!r}")
     if model.fusion not in FUSIONS:
         raise ConfigError(f"model.fusion: expected one of {', '.join(FUSIONS)}, got {model.fusion!r}")
     if model.fusion_hidden is not None and model.fusion != "concat":

@@ -86,6 +86,15 @@ class DNCConfig:
     enabled: bool = True
     memory_slots: int = 32
     memory_width: int = 64
+    # additive: Appendix F.1 as printed, whose memory saturates at the +-10 clamp in long episodes (CartPole: 16-34% of
+    # the entries at step 400); bounded: the convex erase/write, |M| <= 1 in any episode (layers/dnc.py). The default
+    # stays additive so every published MiniGrid result reproduces (bounded is measured on CartPole only, where it
+    # removes the saturation but not the return gap); recipes/gym/cartpole.yaml sets bounded (Pendulum, not measured,
+    # keeps additive). A checkpoint whose state predates this field was trained with additive and loads as additive whatever
+    # the config says (a warning names this field).
+    write: str = "additive"
+    # LayerNorm on the DNC's output e_aug, the features both heads read
+    output_norm: bool = False
 
 
 @dataclass

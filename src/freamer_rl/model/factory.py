@@ -173,6 +173,8 @@ def build_freamer(
         dnc=cfg.dnc.enabled,
         memory_slots=cfg.dnc.memory_slots,
         memory_width=cfg.dnc.memory_width,
+        dnc_write=cfg.dnc.write,
+        dnc_output_norm=cfg.dnc.output_norm,
         compile=cfg.compile,
     )
     steps.extend(layers)
@@ -213,6 +215,8 @@ def build_filter_mix_memory(
     dnc: bool = True,
     memory_slots: int = 32,
     memory_width: int = 64,
+    dnc_write: str = "additive",
+    dnc_output_norm: bool = False,
     compile: bool = False,
     output_dim: int | None = None,
     out_key: NestedKey = "hidden",
@@ -253,6 +257,9 @@ def build_filter_mix_memory(
             ``concat``, ``mean``) and the concat MLP's width (default ``d``).
         fno_modes, fno_residual_scale, fno_output_norm: :class:`~freamer_rl.layers.fno.FNOFuser` settings.
         dnc, memory_slots, memory_width: Layer 4 DNC (``N``, ``W``) or the stateless projection when False.
+        dnc_write, dnc_output_norm: the DNC's memory write (``additive``, the layer's default, | ``bounded``) and
+            the LayerNorm on its output (:class:`~freamer_rl.layers.dnc.DNCMemory`); FreamerV1 passes its
+            ``model.dnc`` choices.
         compile: ``torch.compile`` the DNC step (with an eager fallback; :class:`~freamer_rl.layers.dnc.DNCModule`).
         output_dim: ``D_out`` (default ``d``). out_key: where Layer 4 writes ``e_aug``.
         memory_key, is_init_key: DNC state and episode-start keys.
@@ -294,7 +301,19 @@ def build_filter_mix_memory(
     steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=[fused_key, "fused_modalities"]))
     if placement == "post":  # one refiner on the mixed vector (refinement after fusion)
         steps.append(KeyedModule(refiners["fused"], in_keys=[fused_key], out_keys=["fused"]))
-    memory = _layer4(dnc, dim, d_out, memory_slots, memory_width, out_key, memory_key, is_init_key, compile)
+    memory = _layer4(
+        dnc,
+        dim,
+        d_out,
+        memory_slots,
+        memory_width,
+        out_key,
+        memory_key,
+        is_init_key,
+        compile,
+        dnc_write,
+        dnc_output_norm,
+    )
     steps.append(memory if memory is not None else _projection(dim, d_out, out_key))
     return steps, refiners, fuser, memory
 
@@ -309,6 +328,8 @@ def _layer4(
     memory_key: NestedKey,
     is_init_key: NestedKey,
     compile: bool,
+    write: str,
+    output_norm: bool,
 ) -> DNCModule | None:
     """Layer 4's DNC reading ``"fused"`` (App. F.1), or None without memory."""
     if not dnc:
@@ -322,6 +343,8 @@ def _layer4(
         out_key=out_key,
         memory_key=memory_key,
         is_init_key=is_init_key,
+        write=write,
+        output_norm=output_norm,
         compile=compile,
     )
 
