@@ -2,6 +2,8 @@
 recording, the JSON of every metric, and the one-line errors for bad inputs."""
 
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,33 +16,18 @@ from freamer_rl.health.config import load_health_config
 from freamer_rl.run import env_registry
 from freamer_rl.trainers.health import train as train_health
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_health_pipeline import TINY as PIPELINE_TINY  # noqa: E402
+
+# the pipeline tests' tiny sizes, an MLP encoder, two envs, one iteration of smaller batches
 TINY = [
+    *PIPELINE_TINY,
     "encoder.kind=mlp",
     "env.num_envs=2",
-    "env.episode_length=48",
     "collect.iterations=1",
     "collect.prefill_frames=96",
     "collect.frames_per_iter=48",
-    "world_model.seq_len=12",
-    "world_model.batch_size=4",
-    "world_model.train_steps=2",
-    "world_model.prefill_train_steps=2",
-    "world_model.deter_dim=16",
-    "world_model.stoch_dim=4",
-    "world_model.hidden=16",
-    "encoder.embed_dim=12",
-    "encoder.hidden=16",
     "imagination.num_seeds=8",
-    "imagination.updates=1",
-    "imagination.epochs=1",
-    "imagination.num_minibatches=2",
-    "imagination.policy_hidden=16",
-    "eval.num_envs=2",
-    "eval.horizon_context=4",
-    "eval.horizon_max=8",
-    "eval.mse_windows=4",
-    "eval.horizon_windows=4",
-    "logging.progress_bar=false",
 ]
 METRICS = (
     "events",

@@ -4,6 +4,7 @@ subjects' numbers pinned, the LOSO suite's folds and a tiny fold trained end to 
 
 import json
 import re
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,10 @@ from freamer_rl.health.reference import ceiling_table, reference_rollout
 from freamer_rl.run import env_registry
 from freamer_rl.trainers.health import train as train_health
 from freamer_rl.trainers.registry import load_recipe
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from test_health_pipeline import TINY as PIPELINE_TINY  # noqa: E402
+
 from freamer_rl_envs.health import VARIED_ENV_ID, make_health_env
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -224,35 +229,8 @@ def test_loso_suite_plans_nine_folds_per_encoder(tmp_path):
     assert folds == {"mlp": set(PROTOCOL_SUBJECTS), "foundation": set(PROTOCOL_SUBJECTS)}
 
 
-TINY = [
-    f"env.id={VARIED_ENV_ID}",
-    "env.synthetic_duration_s=600",
-    "env.num_envs=4",
-    "env.episode_length=48",
-    "collect.iterations=1",
-    "collect.prefill_frames=128",
-    "collect.frames_per_iter=64",
-    "world_model.seq_len=12",
-    "world_model.batch_size=4",
-    "world_model.train_steps=2",
-    "world_model.prefill_train_steps=2",
-    "world_model.deter_dim=16",
-    "world_model.stoch_dim=4",
-    "world_model.hidden=16",
-    "encoder.embed_dim=12",
-    "encoder.hidden=16",
-    "imagination.num_seeds=16",
-    "imagination.updates=1",
-    "imagination.epochs=1",
-    "imagination.num_minibatches=2",
-    "imagination.policy_hidden=16",
-    "eval.num_envs=2",
-    "eval.horizon_context=4",
-    "eval.horizon_max=8",
-    "eval.mse_windows=4",
-    "eval.horizon_windows=4",
-    "logging.progress_bar=false",
-]
+# the pipeline tests' tiny sizes, on the varied subjects, one iteration
+TINY = [*PIPELINE_TINY, f"env.id={VARIED_ENV_ID}", "env.synthetic_duration_s=600", "collect.iterations=1"]
 
 
 def test_tiny_loso_fold_trains_evaluates_on_the_held_out_subject_and_records_it(tmp_path, monkeypatch):

@@ -27,7 +27,9 @@ from typing import Any
 
 import numpy as np
 
-from freamer_rl.experiments.stats import iqm_ci, mean_ratio_ci, stratified_bootstrap_ci
+from freamer_rl.experiments.health_table import HEALTH_METRICS, health_markdown, health_summary
+from freamer_rl.experiments.stats import iqm_ci
+from freamer_rl.experiments.stats import is_missing as _missing
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.metrics import SUCCESS_LEVELS
 from freamer_rl.run.rundir import write_rows_csv
@@ -65,20 +67,9 @@ FINAL_METRICS = (
     ("return_mean", "final_return_mean", "return_mean"),
     ("crafter_score", "crafter_score", "crafter_score"),
 )
-#: the health trainer's summary.json metrics (paper Table 15): (key, column, digits); ``params_encoder`` beside them
-HEALTH_METRICS = (
-    ("eval_return_mean", "Reward", 1),
-    ("eval_violations_mean", "Violations", 2),
-    ("recon_mse", "MSE", 3),
-    ("imagination_horizon", "Horizon", 1),
-)
 
 
 # -- helpers -----------------------------------------------------------------------------------------------------
-def _missing(v: Any) -> bool:
-    return v is None or (isinstance(v, float) and math.isnan(v))
-
-
 def mean_std(values: list, empty: str = "n/a") -> str:
     """``"mean ± sample std"`` of the values that are not None/NaN (one value: itself; none: ``empty``)."""
     vals = [v for v in values if not _missing(v)]
@@ -363,15 +354,7 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
         row["crafter_score_per_seed"] = " / ".join(
             "—" if _missing(r.get("crafter_score")) else f"{r['crafter_score']:.2f}" for r in done
         )
-        for key in (*(k for k, _, _ in HEALTH_METRICS), "params_encoder"):
-            vals = [float(r[key]) for r in done if not _missing(r.get(key))]
-            row[f"{key}_mean"] = statistics.mean(vals) if vals else None
-            row[f"{key}_std"] = statistics.stdev(vals) if len(vals) > 1 else (0.0 if vals else None)
-        rewards = [float(r["eval_return_mean"]) for r in done if not _missing(r.get("eval_return_mean"))]
-        row["_eval_return_values"] = rewards  # per seed, for Table 15's ratios (private: not a CSV column)
-        ci = stratified_bootstrap_ci({env: rewards}, np.mean) if rewards else (None, None, None)
-        row["eval_return_ci_low"], row["eval_return_ci_high"] = ci[1], ci[2]
-        row["eval_return_per_seed"] = " / ".join(f"{v:.1f}" for v in rewards)
+        row.update(health_summary(done, env))
         targets = {r.get("return_target") for r in done} - {None}
         row["return_target"] = targets.pop() if len(targets) == 1 else None  # mixed targets: no column
         for key in (*LEVEL_KEYS, "frames_to_return"):
@@ -423,62 +406,6 @@ def _to95(row: dict, key: str) -> str:
     mean = row[f"{key}_mean"]
     head = "n/a" if row[f"{key}_reached"] is None else "not reached" if mean is None else f"{mean:,.0f}"
     return f"{head} [{row[f'{key}_per_seed']}]"
-
-
-def _health_reward_cells(row: dict, first: dict) -> list[str]:
-    """Table 15's reward mean [CI], per-seed values and ratio to ``first`` [CI]."""
-    mean, low, high = row["eval_return_mean_mean"], row["eval_return_ci_low"], row["eval_return_ci_high"]
-    cells = [f"{mean:.1f} [{low:.1f}, {high:.1f}]", row["eval_return_per_seed"]]
-    if row is first:
-        return [*cells, ""]
-    ratio, r_low, r_high = mean_ratio_ci(row["_eval_return_values"], first["_eval_return_values"])
-    return [*cells, f"{ratio:.2f} [{r_low:.2f}, {r_high:.2f}]"]
-
-
-def health_markdown(rows: list[dict]) -> list[str]:
-    """The Table 15 section of summary.md (``[]`` when no run has the health evaluation): per label x env, each
-    :data:`HEALTH_METRICS` value as mean +- sample std across the seeds done, the encoder's parameters, and the
-    reward difference to the first such label."""
-    rows = [r for r in rows if r["eval_return_mean_mean"] is not None]
-    if not rows:
-        return []
-    first = rows[0]
-    head = [
-        "label",
-        "seeds done",
-        *(col for _, col, _ in HEALTH_METRICS),
-        "params (encoder)",
-        f"reward vs {first['label']}",
-        "reward mean [95% CI]",
-        "reward per seed",
-        f"reward / {first['label']} [95% CI]",
-    ]
-    lines = [
-        "",
-        "## Health world model (paper Table 15)",
-        "",
-        "Reward: real-env evaluation return per episode; Violations: steps with HR > 160 bpm per episode; MSE: "
-        "reconstruction MSE per feature (raw units, held-out episodes); Horizon: open-loop imagined steps before "
-        "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done; the reward's "
-        "mean with a 95% bootstrap interval over the seeds, each seed's value, and the ratio of mean rewards to the "
-        "first label's with a 95% bootstrap interval (each arm's seeds resampled on their own).",
-        "",
-        "| " + " | ".join(head) + " |",
-        "|---|" + "---:|" * (len(head) - 1),
-    ]
-    for r in rows:
-        cells = [r["label"], str(r["seeds_done"])]
-        cells += [
-            f"{r[f'{k}_mean']:.{d}f} +- {r[f'{k}_std']:.{d}f}" if r[f"{k}_mean"] is not None else ""
-            for k, _, d in HEALTH_METRICS
-        ]
-        params = r["params_encoder_mean"]
-        cells.append("" if params is None else f"{params:,.0f}")
-        delta = r["eval_return_mean_mean"] - first["eval_return_mean_mean"]
-        cells.append("" if r is first else f"{delta:+.1f}")
-        cells += _health_reward_cells(r, first)
-        lines.append("| " + " | ".join(cells) + " |")
-    return lines
 
 
 def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:

@@ -12,13 +12,19 @@ with more seeds does not crowd out the others.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["iqm", "stratified_bootstrap_ci", "iqm_ci", "mean_ratio_ci", "probability_of_improvement"]
+__all__ = ["is_missing", "iqm", "stratified_bootstrap_ci", "iqm_ci", "mean_ratio_ci", "probability_of_improvement"]
 
 Scores = Mapping[str, Sequence[float]]
+
+
+def is_missing(value: object) -> bool:
+    """A value a report leaves out: ``None`` or a float NaN (summary.json writes NaN as null)."""
+    return value is None or (isinstance(value, float) and math.isnan(value))
 
 
 def iqm(values: Sequence[float]) -> float:
