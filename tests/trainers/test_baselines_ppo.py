@@ -33,13 +33,21 @@ def _specs():
 
 @pytest.mark.parametrize("batch", [(), (5,), (2, 3)])
 @pytest.mark.parametrize(
-    "kind,keys,shared",
-    [("mlp", ["grid", "direction"], False), ("mlp", ["grid"], True), ("cnn", ["pixels", "inventory"], True)],
+    "kind,keys,shared,image_key",
+    [
+        ("mlp", ["grid", "direction"], False, None),
+        ("mlp", ["grid"], True, None),
+        ("cnn", ["pixels", "inventory"], True, None),
+        # two image-shaped keys: the named one is convolved, the 7x7x3 grid flattened beside it
+        ("cnn", ["grid", "pixels", "direction"], True, "pixels"),
+    ],
 )
-def test_actor_critic_over_batch_shapes(batch, kind, keys, shared):
+def test_actor_critic_over_batch_shapes(batch, kind, keys, shared, image_key):
     obs_spec, act_spec = _specs()
     net = build_actor_critic(
-        obs_spec, act_spec, NetworkConfig(kind=kind, observation_keys=keys, hidden=32, shared=shared)
+        obs_spec,
+        act_spec,
+        NetworkConfig(kind=kind, observation_keys=keys, hidden=32, shared=shared, image_key=image_key),
     )
     td = obs_spec.rand(batch)
     out = net.get_policy_operator()(td.clone())
@@ -47,6 +55,8 @@ def test_actor_critic_over_batch_shapes(batch, kind, keys, shared):
     assert net.get_value_operator()(td.clone())["state_value"].shape == (*batch, 1)
     encoders = [m for m in net.module[0].module.modules() if isinstance(m, ObservationEncoder)]
     assert len(encoders) == (1 if shared else 2)
+    if image_key is not None:  # the conv stack reads the pixels; the grid and direction are flattened beside it
+        assert encoders[0].image_index == keys.index(image_key)
 
 
 def test_encoder_scales_pixels_and_flattens_scalars():
@@ -70,6 +80,8 @@ def test_network_errors_name_the_field(tmp_path):
         build_actor_critic(obs_spec, act_spec, NetworkConfig(observation_keys=["image"]))
     with pytest.raises(EnvSetupError, match="exactly one image key"):
         build_actor_critic(obs_spec, act_spec, NetworkConfig(kind="cnn", observation_keys=["grid", "pixels"]))
+    with pytest.raises(ConfigError, match="network.image_key"):
+        load_config(MLP_RECIPE, ["network.kind=cnn", "network.image_key=pixels"])
     with pytest.raises(EnvSetupError, match="at least 36x36"):
         ObservationEncoder([(8, 8, 3)], hidden=4, image_index=0)
 

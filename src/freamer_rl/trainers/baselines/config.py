@@ -92,6 +92,9 @@ class NetworkConfig:
     init: str = "auto"
     # hidden size of the LSTM of the *_lstm kinds (None: network.hidden); trained on ppo.sequence_length sequences
     lstm_hidden: int | None = None
+    # kind cnn / cnn_lstm: the key the conv stack reads (None: the one [H, W, C] key among observation_keys); name it
+    # when several keys are image-shaped (MiniGrid's 7x7x3 grid beside its RGB view), the others are flattened
+    image_key: str | None = None
 
 
 def check_network(net: NetworkConfig, kinds: tuple[str, ...] = FEEDFORWARD_KINDS) -> None:
@@ -104,6 +107,10 @@ def check_network(net: NetworkConfig, kinds: tuple[str, ...] = FEEDFORWARD_KINDS
         raise ConfigError("network.observation_keys: expected at least one observation key, got []")
     if len(set(net.observation_keys)) != len(net.observation_keys):
         raise ConfigError(f"network.observation_keys: duplicate keys in {net.observation_keys}")
+    if net.image_key is not None and net.image_key not in net.observation_keys:
+        raise ConfigError(
+            f"network.image_key: {net.image_key!r} is not one of network.observation_keys {net.observation_keys}"
+        )
     if net.init not in NETWORK_INITS:
         raise ConfigError(f"network.init: expected one of {', '.join(NETWORK_INITS)}, got {net.init!r}")
     if len(net.cnn_channels) != 3 or min(net.cnn_channels) < 1:

@@ -2,7 +2,7 @@
 
 ``kind: mlp`` -- every observation key cast to float, flattened and concatenated (MiniGrid's ``grid`` + ``direction``
 is FlatObsWrapper's observation without the mission characters, which are constant in MultiRoom); ``kind: cnn`` --
-the one image key (uint8 ``[H, W, C]``, scaled to [0, 1]) through the Nature-DQN conv stack, the other keys flattened
+the one image key (uint8 ``[H, W, C]``, scaled to [0, 1]; ``network.image_key`` names it among several) through the Nature-DQN conv stack, the other keys flattened
 beside its features. ``shared: false`` gives the actor and the critic their own encoder (TorchRL's PPO-MLP);
 ``shared: true`` one trunk for both (the usual PPO-CNN). Either way the pieces are an ``ActorValueOperator``:
 ``common`` writes ``hidden_pi`` / ``hidden_v``, the heads of :mod:`freamer_rl.model.heads` read them. ``init``
@@ -106,12 +106,18 @@ class ActorCriticTrunk(nn.Module):
         return h, (h if self.v is None else self.v(*obs))
 
 
-def _image_index(keys: list[str], shapes: list[tuple[int, ...]]) -> int:
+def _image_index(keys: list[str], shapes: list[tuple[int, ...]], image_key: str | None = None) -> int:
+    """Position of the key the conv stack reads: ``image_key`` if given, else the one ``[H, W, C]`` key."""
+    if image_key is not None:
+        i = keys.index(image_key)
+        if len(shapes[i]) != 3:
+            raise EnvSetupError(f"network.image_key: {image_key!r} has shape {shapes[i]}, expected [H, W, C]")
+        return i
     images = [i for i, s in enumerate(shapes) if len(s) == 3 and s[-1] in (1, 3, 4)]
     if len(images) != 1:
         raise EnvSetupError(
             f"network.kind=cnn / cnn_lstm needs exactly one image key ([H, W, C]) among network.observation_keys"
-            f" {keys}; shapes {shapes}"
+            f" {keys}; shapes {shapes} (name the one to convolve with network.image_key)"
         )
     return images[0]
 
@@ -155,7 +161,7 @@ def build_actor_critic(observation_spec, action_spec, net: NetworkConfig) -> Act
         known = ", ".join(str(k) for k in observation_spec.keys())
         raise EnvSetupError(f"network.observation_keys: {missing} not in the env's observations ({known})")
     shapes = [tuple(observation_spec[k].shape) for k in net.observation_keys]
-    image = _image_index(net.observation_keys, shapes) if net.kind in ("cnn", "cnn_lstm") else None
+    image = _image_index(net.observation_keys, shapes, net.image_key) if net.kind in ("cnn", "cnn_lstm") else None
 
     def make_encoder() -> ObservationEncoder:
         return ObservationEncoder(shapes, net.hidden, image, tuple(net.cnn_channels))
