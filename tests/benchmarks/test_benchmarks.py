@@ -164,15 +164,51 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
     assert float(ratio) == round(statistics.mean(foundation) / statistics.mean(mlp), 2)
     assert r_low <= float(ratio) <= r_high and r_low >= 48.0 / 64.0 and r_high <= 53.0 / 50.0
     header = (tmp_path / "runs.csv").read_text().splitlines()[0].split(",")
-    assert header[-7:] == [
+    assert header[-9:] == [
         "eval_return_mean",
         "eval_violations_mean",
         "recon_mse",
         "imagination_horizon",
         "params_encoder",
+        "encoder",
+        "eval_subjects",
         "error",
         "run_dir",
     ]
+    assert "Leave-one-subject-out" not in text  # no run names its held-out subjects
+
+
+def test_report_adds_the_loso_overall_row_per_encoder(tmp_path):
+    """Leave-one-subject-out: per encoder, the reward over the folds (the mean of the fold means, whatever the seeds
+    done per fold) with a stratified interval inside the folds' range, and each fold's mean."""
+    folds = {("mlp", 101): [80.0, 82.0], ("mlp", 102): [70.0], ("foundation", 101): [90.0, 92.0, 94.0]}
+    folds[("foundation", 102)] = [60.0, 62.0]
+    records = []
+    for (enc, subject), rets in folds.items():
+        for seed, ret in enumerate(rets):
+            values = {"eval_return_mean": ret, "encoder": enc, "eval_subjects": [subject]}
+            records.append(_health_run(tmp_path, f"{enc}_fold{subject}", seed, values))
+    # an encoder evaluated on one held-out set only gets no overall row
+    records.append(
+        _health_run(tmp_path, "cnn_fold101", 0, {"eval_return_mean": 1.0, "encoder": "cnn", "eval_subjects": [101]})
+    )
+    write_report(tmp_path, "loso_demo", records)
+    section = (tmp_path / "summary.md").read_text().split("## Leave-one-subject-out, overall (per encoder)")[1]
+    rows = {
+        line.split(" | ")[0].strip("| "): line.strip("| ").split(" | ")
+        for line in section.splitlines()
+        if line.startswith("| ") and not line.startswith("| encoder")
+    }
+    assert set(rows) == {"mlp", "foundation"}
+    enc, n_folds, runs, reward, per_fold = rows["mlp"]
+    assert (n_folds, runs, per_fold) == ("2", "3", "101: 81.0, 102: 70.0")
+    point, bounds = reward.split(" [")
+    low, high = (float(v) for v in bounds.rstrip("]").split(", "))
+    assert float(point) == 75.5  # (81 + 70) / 2, not the pooled (80 + 82 + 70) / 3
+    assert 70.0 <= low <= 75.5 <= high <= 82.0
+    assert rows["foundation"][3].startswith("76.5 [")  # (92 + 61) / 2
+    csv_rows = (tmp_path / "runs.csv").read_text().splitlines()
+    assert any(",mlp,101," in line for line in csv_rows)
 
 
 def test_health_quick_suite_trains_and_tables_a_real_health_run(tmp_path):

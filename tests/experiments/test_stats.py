@@ -11,6 +11,7 @@ from freamer_rl.experiments.stats import (
     mean_ratio_ci,
     probability_of_improvement,
     stratified_bootstrap_ci,
+    task_mean_ci,
 )
 
 
@@ -77,3 +78,12 @@ def test_mean_ratio_ci_is_exact_for_constant_arms_and_bounded_by_the_extremes():
     # a replicate's means stay within each arm's extremes, so its ratio does too
     assert 48.0 / 64.0 <= low < point < high <= 53.0 / 50.0
     assert all(math.isnan(v) for v in mean_ratio_ci([1.0], [0.0])[1:])  # no finite replicate: NaN bounds
+
+
+def test_task_mean_ci_weighs_every_task_alike():
+    # task a has one seed at 0, task b three at 10: the mean of the task means is 5 (the pooled mean would be 7.5);
+    # a single seed cannot move, so every replicate is (0 + mean of b's resample) / 2 = 5
+    point, low, high = task_mean_ci({"a": [0.0], "b": [10.0, 10.0, 10.0]})
+    assert (point, low, high) == (5.0, 5.0, 5.0)
+    point, low, high = task_mean_ci({"a": [0.0, 2.0], "b": [10.0]})
+    assert point == 5.5 and 5.0 <= low < high <= 6.0  # a's resampled mean lies in [0, 2]

@@ -2,7 +2,7 @@
 health trainer's evaluation: per label, each :data:`HEALTH_METRICS` value as mean +- sample std across seeds, the
 encoder's parameters, the reward's mean with a 95% bootstrap interval, per-seed values and the ratio of mean rewards
 to the first label's with its interval. :mod:`freamer_rl.experiments.report` calls :func:`health_summary` per label
-and :func:`health_markdown` for the section."""
+and :func:`health_markdown` for the section, and :func:`loso_markdown` for the leave-one-subject-out overall rows."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ from typing import Any
 
 import numpy as np
 
-from freamer_rl.experiments.stats import is_missing, mean_ratio_ci, stratified_bootstrap_ci
+from freamer_rl.experiments.stats import is_missing, mean_ratio_ci, stratified_bootstrap_ci, task_mean_ci
 
-__all__ = ["HEALTH_METRICS", "health_markdown", "health_summary"]
+__all__ = ["HEALTH_METRICS", "health_markdown", "health_summary", "loso_markdown"]
 
 #: the health trainer's summary.json metrics (paper Table 15): (key, column, digits); ``params_encoder`` beside them
 HEALTH_METRICS = (
@@ -94,4 +94,42 @@ def health_markdown(rows: list[dict]) -> list[str]:
         cells.append("" if r is first else f"{delta:+.1f}")
         cells += _health_reward_cells(r, first)
         lines.append("| " + " | ".join(cells) + " |")
+    return lines
+
+
+def _loso_folds(results: list[dict]) -> dict[str, dict[str, list[float]]]:
+    """``{encoder: {held-out subjects: [reward per seed]}}`` over the finished health runs that name their
+    evaluation subjects; only encoders evaluated on two or more held-out sets (folds)."""
+    folds: dict[str, dict[str, list[float]]] = {}
+    for r in results:
+        if r["status"] != "done" or is_missing(r.get("eval_return_mean")) or not r.get("eval_subjects"):
+            continue
+        enc = r.get("encoder") or r["label"]
+        folds.setdefault(enc, {}).setdefault(r["eval_subjects"], []).append(float(r["eval_return_mean"]))
+    return {enc: f for enc, f in folds.items() if len(f) > 1}
+
+
+def loso_markdown(results: list[dict]) -> list[str]:
+    """The leave-one-subject-out section of summary.md (``[]`` unless some encoder was evaluated on two or more
+    held-out subject sets): per encoder, the reward over all folds with a 95% stratified-bootstrap interval (each
+    fold's seeds resampled within the fold, so every fold keeps its weight), the folds and seeds done, and each
+    fold's mean."""
+    folds = _loso_folds(results)
+    if not folds:
+        return []
+    lines = [
+        "",
+        "## Leave-one-subject-out, overall (per encoder)",
+        "",
+        "Reward: the real-env evaluation return on the held-out subject, averaged over the folds; 95% stratified "
+        "bootstrap interval with the folds as strata. Per fold: held-out subjects = mean over its seeds.",
+        "",
+        "| encoder | folds | runs | reward [95% CI] | per fold |",
+        "|---|---:|---:|---:|---|",
+    ]
+    for enc, by_fold in folds.items():
+        point, low, high = task_mean_ci(by_fold)  # every fold weighs the same, whatever its seeds done
+        runs = sum(len(v) for v in by_fold.values())
+        per_fold = ", ".join(f"{f}: {np.mean(v):.1f}" for f, v in sorted(by_fold.items()))
+        lines.append(f"| {enc} | {len(by_fold)} | {runs} | {point:.1f} [{low:.1f}, {high:.1f}] | {per_fold} |")
     return lines

@@ -17,7 +17,15 @@ from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 
-__all__ = ["is_missing", "iqm", "stratified_bootstrap_ci", "iqm_ci", "mean_ratio_ci", "probability_of_improvement"]
+__all__ = [
+    "is_missing",
+    "iqm",
+    "stratified_bootstrap_ci",
+    "iqm_ci",
+    "task_mean_ci",
+    "mean_ratio_ci",
+    "probability_of_improvement",
+]
 
 Scores = Mapping[str, Sequence[float]]
 
@@ -70,6 +78,22 @@ def iqm_ci(scores: Scores, **options) -> tuple[float, float, float]:
     """IQM over every task's seeds with its stratified-bootstrap 95% interval (``options`` as
     :func:`stratified_bootstrap_ci`)."""
     return stratified_bootstrap_ci(scores, iqm, **options)
+
+
+def task_mean_ci(
+    scores: Scores, *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float, float]:
+    """``(mean over tasks of each task's mean, low, high)``: every task weighs the same whatever its number of seeds
+    (leave-one-subject-out folds with unequal seeds done); the interval resamples each task's seeds on their own."""
+    arrays = _as_arrays(scores)
+    rng = np.random.default_rng(seed)
+    point = float(np.mean([v.mean() for v in arrays.values()]))
+    values = np.array(
+        [np.mean([v[rng.integers(0, v.size, v.size)].mean() for v in arrays.values()]) for _ in range(reps)]
+    )
+    tail = 100 * (1 - confidence) / 2
+    low, high = np.percentile(values, [tail, 100 - tail])
+    return point, float(low), float(high)
 
 
 def _prob_greater(x: np.ndarray, y: np.ndarray) -> float:
