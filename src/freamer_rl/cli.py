@@ -31,6 +31,7 @@ from freamer_rl import __version__
 from freamer_rl.config.sections import CorruptionConfig, check_corruption
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.chain import run_chain
+from freamer_rl.experiments.health_corruption import main as health_corruption_main
 from freamer_rl.experiments.suite import dry_run_listing, run_suite
 from freamer_rl.health.cli import main as health_main
 from freamer_rl.run.params import OFFLINE_NOTE, format_parameter_table
@@ -142,6 +143,8 @@ def _run(args: argparse.Namespace) -> int:
         sys.stdout.write(json.dumps(result, indent=2, default=str) + "\n")
         return 0
     if args.command == "health":
+        if args.health_args[:1] == ["corruption"]:  # the sweep aggregates with experiments.stats (a higher tier)
+            return health_corruption_main(args.health_args[1:])
         return health_main(args.health_args, prog="freamer-rl health")
     if args.command == "params":
         name, cfg = load_recipe(args.recipe, args.overrides)

@@ -241,7 +241,7 @@ def test_cli_eval_takes_corruptions(tmp_path, capsys):
         == 0
     )
     out = json.loads(capsys.readouterr().out)
-    assert out["corrupt"] == [{"key": "grid", "kind": "salt", "level": 0.5, "when": "eval"}]
+    assert out["corrupt"] == [{"key": "grid", "kind": "salt", "level": 0.5, "when": "eval", "channels": None}]
     assert out["embedding_noise"] == {"state": 2.0}
     assert cli.main(["eval", str(tmp_path / "run"), "--episodes", "2", "--corrupt", "grid:salt"]) == 2
     assert "error: --corrupt 'grid:salt': expected KEY:KIND:LEVEL" in capsys.readouterr().err

@@ -13,6 +13,7 @@ Number ranges live beside the sections in tables (:data:`BASE_RANGES`, :data:`PP
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -45,12 +46,15 @@ CORRUPTION_WHEN = ("train", "eval", "both")
 @dataclass
 class CorruptionConfig:
     """One ``env.corrupt`` entry: observation ``key`` corrupted by ``kind`` at ``level`` during training, evaluation
-    or both (:mod:`freamer_rl.run.corruption` says what each kind and level mean)."""
+    or both (:mod:`freamer_rl.run.corruption` says what each kind and level mean). ``channels: [start, stop]``
+    restricts it to ``key[..., start:stop]`` (one sensor site of a concatenated vector, e.g. the health env's hand
+    IMU ``imu[0:12]``); the key may carry the slice itself, ``key: "imu[0:12]"`` (the CLI's form)."""
 
     key: str = ""
     kind: str = "gaussian"
     level: float = 1.0
     when: str = "both"
+    channels: list[int] | None = None  # [start, stop) of the key's last dim; None: the whole key
 
 
 @dataclass
@@ -231,10 +235,42 @@ def check_corruption(entries: list[CorruptionConfig]) -> None:
         check_corruption_entry(c, f"env.corrupt[{i}]")
 
 
+_KEY_SLICE = re.compile(r"^(?P<key>[^\[\]]+)\[(?P<start>-?\d+):(?P<stop>-?\d+)\]$")
+
+
+def corruption_target(c: CorruptionConfig, where: str) -> tuple[str, tuple[int, int] | None]:
+    """``(key, (start, stop) or None)`` of an entry: ``channels`` or the key's own ``[start:stop]`` suffix (both
+    given must agree). Checks the slice's form (two integers, ``0 <= start < stop``); whether ``stop`` fits the key's
+    last dim is checked when the env is built."""
+    key, channels = c.key, c.channels
+    if "[" in key or "]" in key:
+        found = _KEY_SLICE.fullmatch(key)
+        if found is None:
+            raise ConfigError(f"{where}.key: {key!r}: expected KEY or KEY[start:stop] (e.g. imu[0:12])")
+        key, sliced = found["key"], [int(found["start"]), int(found["stop"])]
+        if channels is not None and list(channels) != sliced:
+            raise ConfigError(f"{where}.channels: {list(channels)} disagrees with the key's slice {sliced}")
+        channels = sliced
+    if channels is None:
+        return key, None
+    if (
+        not isinstance(channels, (list, tuple))
+        or len(channels) != 2
+        or not all(isinstance(v, int) and not isinstance(v, bool) for v in channels)
+    ):
+        raise ConfigError(f"{where}.channels: expected [start, stop], two integers, got {channels!r}")
+    start, stop = channels
+    if not 0 <= start < stop:
+        raise ConfigError(f"{where}.channels: expected 0 <= start < stop, got [{start}, {stop}]")
+    return key, (start, stop)
+
+
 def check_corruption_entry(c: CorruptionConfig, where: str) -> None:
-    """One corruption entry's key, kind, level and phase; ``where`` names it in the error (``env.corrupt[0]``)."""
+    """One corruption entry's key (and slice), kind, level and phase; ``where`` names it in the error
+    (``env.corrupt[0]``)."""
     if not c.key:
         raise ConfigError(f"{where}.key: name the observation key to corrupt (e.g. pixels, grid, mission_tokens)")
+    corruption_target(c, where)
     check_corruption_kind(c.kind, c.level, where)
     if c.when not in CORRUPTION_WHEN:
         raise ConfigError(f"{where}.when: expected train, eval or both, got {c.when!r}")

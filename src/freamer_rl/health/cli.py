@@ -6,6 +6,11 @@
     freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
     freamer-rl health baselines recipes/health/health_foundation.yaml [--depth 4] [--horizon 12] [--json FILE] [key=value ...]
 
+``freamer-rl health corruption RUN [RUN ...] --key imu[0:12] --kind gaussian --levels 0,0.5,1,2`` (the sensor
+corruption sweep of :mod:`freamer_rl.experiments.health_corruption`) is dispatched by the top-level ``freamer-rl``
+(it aggregates with :mod:`freamer_rl.experiments.stats`, a tier above this one); one run's corrupted evaluation is
+``freamer-rl eval RUN --corrupt imu[0:12]:gaussian:1.0``.
+
 ``anomaly`` runs :func:`~freamer_rl.health.anomaly_report.anomaly_report` (Fig. 4 picture, default output: the run
 directory); with ``--data`` and ``--labels`` it filters that labelled recording instead and scores the flags
 (:func:`~freamer_rl.health.anomaly_report.labelled_anomaly_report`: ``anomaly_scores.json`` next to

@@ -16,6 +16,7 @@ env, the reference policies' and the oracle's included (:mod:`freamer_rl.health.
 
 from __future__ import annotations
 
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +25,10 @@ from tensordict import TensorDictBase
 from torchrl.envs import EnvBase, ExplorationType, set_exploration_type
 from torchrl.envs.transforms import TensorDictPrimer
 
+from freamer_rl.config.sections import corruption_target
+from freamer_rl.errors import ConfigError
 from freamer_rl.health.agent import HealthAgent, load_agent, make_health_env
+from freamer_rl.run.corruption import ModalityCorruption, corruption_transforms
 from freamer_rl.world_model.metrics import imagination_horizon, reconstruction_mse, sample_windows
 
 __all__ = [
@@ -33,6 +37,7 @@ __all__ = [
     "make_eval_env",
     "episode_stats",
     "rollout_metrics",
+    "corruption_for",
     "evaluate_policy",
     "world_model_metrics",
     "evaluate_agent",
@@ -115,20 +120,48 @@ def rollout_metrics(traj: TensorDictBase) -> dict[str, float]:
     }
 
 
+def corruption_for(agent: HealthAgent, entries: list | None) -> list[ModalityCorruption]:
+    """The ``--corrupt`` entries (``env.corrupt``-style, :class:`~freamer_rl.config.sections.CorruptionConfig`) as
+    transforms of the evaluation env. Only the observations the agent reads (the world model's ``obs_dims``: imu,
+    hr_features) may be corrupted: a corruption of a key nobody reads would change nothing and read as robustness.
+    One site of the IMU is ``imu[0:12]`` (hand), ``imu[12:24]`` (chest), ``imu[24:36]`` (ankle)."""
+    entries = list(entries or [])
+    reads = list(agent.world_model.obs_dims)
+    for i, e in enumerate(entries):
+        key, _ = corruption_target(e, f"env.corrupt[{i}]")
+        if key not in reads:
+            raise ConfigError(
+                f"env.corrupt[{i}].key: the health agent reads {', '.join(reads)}, not {key!r} "
+                "(one IMU site: imu[0:12] hand, imu[12:24] chest, imu[24:36] ankle)"
+            )
+    return corruption_transforms(entries, None)
+
+
 @torch.no_grad()
 def evaluate_policy(
-    agent: HealthAgent, *, num_envs: int | None = None, seed: int = 10_000, deterministic: bool = True
+    agent: HealthAgent,
+    *,
+    num_envs: int | None = None,
+    seed: int = 10_000,
+    deterministic: bool = True,
+    corrupt: list | None = None,
 ) -> tuple[dict[str, float], TensorDictBase]:
     """Roll the policy in the real env: ``num_envs`` episodes of ``env.episode_length`` steps (one per env, from a
     fresh env with ``seed``, over :func:`eval_subjects`). Returns (metrics, rollout ``[num_envs, episode_length]``).
+    ``corrupt`` (:func:`corruption_for`) corrupts the env's observations before the policy's filter reads them, so
+    the rollout (and the world-model metrics computed on it) holds what the encoder saw.
 
     Metrics: ``return_mean``/``return_std`` (over episodes), ``violations_mean`` (steps with heart rate > 160
-    bpm per episode), ``length_mean``, ``episodes``; read at each env's first ``("next", "done")``.
+    bpm per episode), ``length_mean``, ``episodes``; read at each env's first ``("next", "done")``; ``kl_mean`` /
+    ``kl_std``: the filter's per-step ``KL(q || p)`` over all steps (the anomaly statistic, J.5).
     """
     cfg = agent.cfg
     n = num_envs or cfg.eval.num_envs
     policy = agent.policy(sample_latent=False)
+    transforms = corruption_for(agent, corrupt)
     env = make_eval_env(cfg, num_envs=n, seed=seed, primer=policy.make_tensordict_primer())
+    for t in transforms:
+        env.append_transform(t)
     agent.world_model.eval()
     etype = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
     with set_exploration_type(etype):
@@ -138,6 +171,9 @@ def evaluate_policy(
     actions = traj.get("action").reshape(-1)
     for i in range(agent.world_model.action_dim):
         metrics[f"action_frac_{i}"] = float((actions == i).float().mean())
+    kl = traj.get("kl", None)
+    if kl is not None:
+        metrics["kl_mean"], metrics["kl_std"] = float(kl.float().mean()), float(kl.float().std(unbiased=False))
     keep = [k for k in STORE_KEYS if k != ("collector", "traj_ids")] + [("next", "heart_rate"), "kl"]
     return metrics, traj.select(*keep, strict=False)
 
@@ -175,19 +211,22 @@ def evaluate_checkpoint(
     deterministic: bool = True,
     num_envs: int | None = None,
     seed: int = 12345,
+    corrupt: list | None = None,
 ) -> dict[str, Any]:
     """``freamer-rl eval`` of a health checkpoint: ``episodes`` real-env episodes (one per env, so ``num_envs`` is
-    ``episodes``; a value given must agree) from env seed ``seed``, plus the world-model metrics on them."""
+    ``episodes``; a value given must agree) from env seed ``seed``, plus the world-model metrics on them;
+    ``corrupt``: ``--corrupt`` entries (:func:`corruption_for`), recorded in the result."""
 
     if num_envs is not None and num_envs != episodes:
-        raise ValueError(f"--num-envs ({num_envs}): a health evaluation runs one episode per env; give --episodes")
+        raise ConfigError(f"--num-envs ({num_envs}): a health evaluation runs one episode per env; give --episodes")
     agent = load_agent(path)
-    metrics, traj = evaluate_policy(agent, num_envs=episodes, seed=seed, deterministic=deterministic)
+    metrics, traj = evaluate_policy(agent, num_envs=episodes, seed=seed, deterministic=deterministic, corrupt=corrupt)
     metrics.update(world_model_metrics(agent, traj, seed))
     return {
         "checkpoint": str(path),
         "trainer": "health",
         "encoder": agent.cfg.encoder.kind,
         "deterministic": deterministic,
+        "corrupt": [asdict(e) for e in corrupt or []],
         **metrics,
     }

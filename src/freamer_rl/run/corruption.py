@@ -9,7 +9,7 @@ Kinds (``level`` means):
 
 * ``gaussian`` -- ``x + level * s * N(0, 1)`` with ``s`` the key's running std (all entries of every env pooled,
   updated from the values this transform receives, from the first reset of the run on: an evaluation measures it on
-  its own clean observations), so ``level`` means the same on pixels and on vectors; uint8 values are rounded and
+  its own clean observations), so ``level`` means the same on pixels and on vectors (level 0 draws nothing); uint8 values are rounded and
   clipped to 0..255. Several entries on one key apply in order, each measuring what the previous one produced.
 * ``salt`` -- integer keys (grid indices, mission tokens): each entry is replaced with probability ``level`` by a
   uniform random value of the key's spec range (salt-and-pepper / random-token replacement).
@@ -21,24 +21,39 @@ Kinds (``level`` means):
   entries of a vector) shows fresh noise every step (uniform over the range for integers, the running mean and std
   for floats).
 
+``channels: [start, stop]`` (or ``key: "imu[0:12]"``) restricts an entry to that slice of the key's last dim: only
+the slice changes, its running std is the slice's own, a dropout zeroes the slice only and writes
+``<key>_<start>_<stop>_present`` (one sensor site of a concatenated vector, e.g. the health env's hand IMU).
+
 Randomness comes from torch's global generator, so a seeded run corrupts the same way. Reset and step outputs are
 corrupted alike; a partial reset changes only the state of the envs it resets.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 
 import torch
 from tensordict import TensorDictBase
 from tensordict.utils import NestedKey
 from torchrl.data import Unbounded
-from torchrl.envs.transforms import Transform
+from torchrl.envs.transforms import Compose, Transform, TransformedEnv
 
-from freamer_rl.config.sections import check_corruption_kind
+from freamer_rl.config.sections import check_corruption_kind, corruption_target
 from freamer_rl.errors import ConfigError
 
-__all__ = ["ModalityCorruption", "SensorCopy", "corruption_transforms", "copy_transforms", "eval_entries"]
+__all__ = [
+    "ModalityCorruption",
+    "SensorCopy",
+    "corruption_transforms",
+    "copy_transforms",
+    "eval_entries",
+    "env_corruption_state",
+    "load_corruption_state",
+]
+
+logger = logging.getLogger(__name__)
 
 _INTEGER_ONLY = {"salt"}
 _FLOAT_OR_PIXELS = {"gaussian"}
@@ -74,11 +89,23 @@ class ModalityCorruption(Transform):
     """Corrupt observation ``key`` with ``kind`` at ``level`` (see the module docstring); ``where`` names the recipe
     entry in errors (``env.corrupt[0]``)."""
 
-    def __init__(self, key: NestedKey, kind: str, level: float, where: str = "env.corrupt") -> None:
+    def __init__(
+        self,
+        key: NestedKey,
+        kind: str,
+        level: float,
+        where: str = "env.corrupt",
+        channels: tuple[int, int] | None = None,
+    ) -> None:
         check_corruption_kind(kind, level, where)
         super().__init__(in_keys=[key], out_keys=[key])
         self.key, self.kind, self.level, self.where = key, kind, float(level), where
-        self.present_key = f"{key}_present" if isinstance(key, str) else (*key[:-1], f"{key[-1]}_present")
+        # [start, stop) of the last dim: only that slice is corrupted (and measured); None: the whole key
+        self.channels = None if channels is None else (int(channels[0]), int(channels[1]))
+        tail = "" if self.channels is None else f"_{self.channels[0]}_{self.channels[1]}"
+        name = key if isinstance(key, str) else key[-1]
+        present = f"{name}{tail}_present"
+        self.present_key = present if isinstance(key, str) else (*key[:-1], present)
         self._range: tuple[torch.Tensor, torch.Tensor] | None = None
         self._stats = torch.zeros(3, dtype=torch.float64)  # count, mean, M2 of the clean values (Welford)
         self._held: torch.Tensor | None = None
@@ -90,6 +117,13 @@ class ModalityCorruption(Transform):
             known = ", ".join(str(k) for k in observation_spec.keys(True, True))
             raise ConfigError(f"{self.where}.key: the env has no observation {self.key!r} (it has {known})")
         spec = observation_spec[self.key]
+        if self.channels is not None:
+            width = spec.shape[-1] if len(spec.shape) > len(observation_spec.shape) else 0
+            if self.channels[1] > width:
+                raise ConfigError(
+                    f"{self.where}.channels: [{self.channels[0]}, {self.channels[1]}] does not fit {self.key!r}, "
+                    f"whose last dim has {width} entries (shape {tuple(spec.shape)})"
+                )
         if self.kind in _INTEGER_ONLY and not _is_integer(spec.dtype):
             raise ConfigError(
                 f"{self.where}.kind: {self.kind} replaces integer entries, but {self.key!r} is "
@@ -101,7 +135,10 @@ class ModalityCorruption(Transform):
                 f"{self.key!r} holds {spec.dtype} indices; use salt"
             )
         if _is_integer(spec.dtype):
-            self._range = _spec_range(spec, self.where)
+            low, high = _spec_range(spec, self.where)
+            if self.channels is not None:  # per-entry bounds of the full last dim: keep the slice's
+                low, high = (self._slice(b) if b.ndim and b.shape[-1] == spec.shape[-1] else b for b in (low, high))
+            self._range = (low, high)
         if self.kind == "dropout":
             observation_spec[self.present_key] = Unbounded(
                 (*spec.shape[: len(observation_spec.shape)], 1), device=spec.device, dtype=torch.float32
@@ -122,6 +159,17 @@ class ModalityCorruption(Transform):
             [tot, mean + delta * k / tot, m2 + bv * k + delta**2 * n * k / tot], dtype=torch.float64
         )
 
+    def stats_state(self) -> dict:
+        """The running statistic as checkpoint data (plain tensors and strings: ``torch.load(weights_only=True)``)."""
+        return {"key": str(self.key), "kind": self.kind, "channels": list(self.channels or []), "stats": self._stats}
+
+    def load_stats_state(self, state: dict) -> None:
+        """Restore :meth:`stats_state` (a resumed run keeps measuring from where the checkpoint left off)."""
+        stats = torch.as_tensor(state["stats"], dtype=torch.float64)
+        if stats.shape != (3,):
+            raise ValueError(f"{self.where}: corruption statistic of shape {tuple(stats.shape)}, expected (3,)")
+        self._stats = stats.clone()
+
     @property
     def running_std(self) -> float:
         n, _, m2 = self._stats.tolist()
@@ -130,9 +178,10 @@ class ModalityCorruption(Transform):
     # -- corruption ----------------------------------------------------------------------------------------------
     def _corrupt(self, td: TensorDictBase, update: torch.Tensor | None) -> TensorDictBase:
         """Corrupt ``td[key]``; ``update`` [*B] marks the envs whose per-env state may change (None: all)."""
-        x = td.get(self.key, None)
-        if x is None:
+        full = td.get(self.key, None)
+        if full is None:
             raise KeyError(f"{self.where}: observation {self.key!r} missing from the env's output")
+        x = full if self.channels is None else self._slice(full)
         batch = td.batch_size
         if update is None:
             update = torch.ones(batch, dtype=torch.bool, device=x.device)
@@ -140,14 +189,22 @@ class ModalityCorruption(Transform):
         if self.kind == "dropout":
             keep = torch.rand(batch, device=x.device) >= self.level
             td.set(self.present_key, keep.to(torch.float32).unsqueeze(-1))
-            td.set(self.key, x * keep.reshape((*batch, *([1] * (x.ndim - len(batch))))).to(x.dtype))
+            out = x * keep.reshape((*batch, *([1] * (x.ndim - len(batch))))).to(x.dtype)
         elif self.kind == "stale":
-            td.set(self.key, self._stale(x, update, len(batch)))
+            out = self._stale(x, update, len(batch))
         else:
-            td.set(self.key, getattr(self, f"_{self.kind}")(x, len(batch)))
+            out = getattr(self, f"_{self.kind}")(x, len(batch))
+        if self.channels is not None:  # the rest of the key passes through untouched
+            out = torch.cat([full[..., : self.channels[0]], out, full[..., self.channels[1] :]], dim=-1)
+        td.set(self.key, out)
         return td
 
+    def _slice(self, x: torch.Tensor) -> torch.Tensor:
+        return x[..., self.channels[0] : self.channels[1]]
+
     def _gaussian(self, x: torch.Tensor, nb: int) -> torch.Tensor:
+        if self.level == 0:  # a config value, not a tensor: level 0 draws nothing, so it equals a clean run exactly
+            return x
         noisy = x.float() + self.level * self.running_std * torch.randn(x.shape, device=x.device)
         return noisy.round().clamp(0, 255).to(x.dtype) if x.dtype == torch.uint8 else noisy.to(x.dtype)
 
@@ -241,8 +298,51 @@ def eval_entries(config_entries: list, override: list | None) -> list:
 def corruption_transforms(entries: list, phase: str | None) -> list[ModalityCorruption]:
     """The ``env.corrupt`` entries that apply in ``phase`` (``train`` or ``eval``; None: every entry, already chosen)
     as transforms, in order."""
-    return [
-        ModalityCorruption(e.key, e.kind, e.level, where=f"env.corrupt[{i}]")
-        for i, e in enumerate(entries)
-        if phase is None or e.when in (phase, "both")
-    ]
+    out = []
+    for i, e in enumerate(entries):
+        if phase is None or e.when in (phase, "both"):
+            where = f"env.corrupt[{i}]"
+            key, channels = corruption_target(e, where)
+            out.append(ModalityCorruption(key, e.kind, e.level, where=where, channels=channels))
+    return out
+
+
+def _corruptions(env) -> list[ModalityCorruption]:
+    """The :class:`ModalityCorruption` transforms of a TorchRL env, outermost wrapper last, in order."""
+    found: list[ModalityCorruption] = []
+    while isinstance(env, TransformedEnv):  # no getattr on other envs: wrappers forward unknown names to their env
+        transform = env.transform
+        parts = list(transform) if isinstance(transform, Compose) else [transform]
+        found = [t for t in parts if isinstance(t, ModalityCorruption)] + found
+        env = env.base_env
+    return found
+
+
+def env_corruption_state(env) -> list[dict]:
+    """The running statistics of ``env``'s corruption transforms (:meth:`ModalityCorruption.stats_state`, in order),
+    for a run's checkpoint (issue 20): a resumed run that corrupts during training keeps its ``s``."""
+    return [t.stats_state() for t in _corruptions(env)]
+
+
+def load_corruption_state(transforms: list, state: list[dict] | None, source: str) -> None:
+    """Restore ``state`` (:func:`env_corruption_state` of a checkpoint ``source``) into the ``ModalityCorruption``
+    entries of ``transforms`` before the envs are built from them (the env's clones start from it). ``None`` (a
+    checkpoint written before the statistic was saved) leaves them fresh, with one logged line; entries that no longer
+    match (key, kind, slice) are refused with one CheckpointError-worthy ValueError naming the entry."""
+    own = [t for t in transforms if isinstance(t, ModalityCorruption)]
+    if not own:
+        return
+    if state is None:
+        logger.info(
+            "%s holds no corruption statistics (an older checkpoint): they restart from the first reset", source
+        )
+        return
+    if len(state) != len(own):
+        raise ValueError(f"{source}: {len(state)} corruption statistics saved for {len(own)} training corruptions")
+    for t, saved in zip(own, state):
+        if (saved["key"], saved["kind"], list(saved["channels"])) != (str(t.key), t.kind, list(t.channels or [])):
+            raise ValueError(
+                f"{t.where}: the checkpoint's corruption statistic is of {saved['key']}:{saved['kind']} "
+                f"{list(saved['channels'])}, not {t.key}:{t.kind} {list(t.channels or [])}"
+            )
+        t.load_stats_state(saved)

@@ -35,11 +35,12 @@ from tensordict import TensorDictBase
 
 from freamer_rl.config.checks import resolve_device, run_name_problem
 from freamer_rl.config.loader import config_to_dict
-from freamer_rl.errors import ConfigError
+from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import FORMAT as CHECKPOINT_FORMAT
 from freamer_rl.run.checkpoint import load_checkpoint, read_transfer_source
 from freamer_rl.run.collection import make_collector
+from freamer_rl.run.corruption import env_corruption_state, load_corruption_state
 from freamer_rl.run.crafter_score import CrafterScore
 from freamer_rl.run.envs import make_batched_env
 from freamer_rl.run.lifecycle import RunLifecycle
@@ -104,6 +105,10 @@ class RunLoop:
         # the Crafter score over every training episode, for adapters that report achievements
         self.achievements = CrafterScore(adapter.achievements) if adapter.achievements else None
         self._lock: RunDirLock | None = None
+        # the training corruptions' running statistics (issue 20): restored from a checkpoint into the transforms
+        # the envs are built from, read back from the in-process training env for the next checkpoint
+        self._corruption_saved: list | None = None
+        self._train_env: Any = None
 
     @property
     def rows(self) -> list[dict]:
@@ -216,6 +221,7 @@ class RunLoop:
             self.frames = int(ckpt["frames"])
             self.batches = int(ckpt["batches"])
             self.stats.load_state_dict(ckpt["stats"])
+            self._corruption_saved = ckpt.get("corruption")
             if self.achievements is not None and ckpt.get("achievements"):
                 self.achievements.load_state_dict(ckpt["achievements"])
         logger.info("resumed from %s at %d frames, %d episodes", path, self.frames, self.stats.episodes)
@@ -229,6 +235,7 @@ class RunLoop:
                 "stats": self.stats.state_dict(),
                 "config": config_to_dict(self.cfg),
                 "achievements": self.achievements.state_dict() if self.achievements is not None else None,
+                "corruption": env_corruption_state(self._train_env) if self._train_env is not None else None,
                 "format": CHECKPOINT_FORMAT,
             }
         )
@@ -236,6 +243,11 @@ class RunLoop:
     # -- data -----------------------------------------------------------------------------------------------
     def _env_fns(self, seed: int) -> list:
         transforms = [*self._env_transforms(), *self._primers()]
+        if self.resumed_from is not None:
+            try:
+                load_corruption_state(transforms, self._corruption_saved, str(self.resumed_from))
+            except (KeyError, TypeError, ValueError) as err:
+                raise CheckpointError(f"checkpoint {self.resumed_from}: {err}") from err
         return [
             functools.partial(make_batched_env, self.cfg, transforms, seed + 1000 * i)
             for i in range(self.cfg.collector.num_collectors)
@@ -291,6 +303,9 @@ class RunLoop:
             return self._finish()
         metrics_logger = self.life.metrics_logger(cfg.logging.backend, option="logging.backend")
         collector = self._make_collector(remaining)
+        # one in-process env holds the corruption statistics; worker processes keep theirs (not checkpointed)
+        local = self.cfg.collector.num_collectors == 1 and getattr(self.cfg.collector, "backend", "local") == "local"
+        self._train_env = getattr(collector, "env", None) if local else None
         every = cfg.logging.checkpoint_every_frames
         next_ckpt = (self.frames // every + 1) * every
         # a tqdm bar on a terminal, else a plain log line every ~10 s; its total is what the collector will deliver

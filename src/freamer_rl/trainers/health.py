@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from freamer_rl.errors import ConfigError
 from freamer_rl.health.agent import build_agent, parameter_table
 from freamer_rl.health.config import HealthConfig
 from freamer_rl.health.evaluation import evaluate_checkpoint
@@ -23,12 +22,9 @@ def train(cfg: HealthConfig, run_dir: str | Path | None = None, *, resume: bool 
 
 
 def evaluate(path: str | Path, *, corrupt: list | None = None, **options: Any) -> dict[str, Any]:
-    if corrupt:
-        raise ConfigError(
-            "--corrupt: the health evaluator does not corrupt observations (its real-env protocol is "
-            "fixed); corrupt MiniGrid, gym or Crafter runs"
-        )
-    return evaluate_checkpoint(path, **options)
+    """``freamer-rl eval`` of a health run; ``corrupt`` (``--corrupt imu[0:12]:gaussian:1.0``) corrupts the real
+    env's observations the agent reads (:func:`freamer_rl.health.evaluation.corruption_for`)."""
+    return evaluate_checkpoint(path, corrupt=corrupt, **options)
 
 
 def params(cfg: HealthConfig) -> list[dict]:
