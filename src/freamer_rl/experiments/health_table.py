@@ -21,6 +21,9 @@ HEALTH_METRICS = (
     ("eval_violations_mean", "Violations", 2),
     ("recon_mse", "MSE", 3),
     ("imagination_horizon", "Horizon", 1),
+    # does the world model rank the held actions as the real env does (freamer_rl.health.oracle.action_ranking)
+    ("eval_action_rank_spearman", "Rank rho", 2),
+    ("eval_action_rank_top1", "Top-1", 2),
 )
 
 

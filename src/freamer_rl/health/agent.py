@@ -37,6 +37,7 @@ from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint, save_checkpoint
 from freamer_rl.run.params import parameter_rows
 from freamer_rl.world_model.functional import gaussian_kl
+from freamer_rl.world_model.heads import TwoHotHead
 from freamer_rl.world_model.rssm import WorldModel
 
 __all__ = [
@@ -170,13 +171,16 @@ def build_world_model(cfg: HealthConfig) -> WorldModel:
         kl_balance=w.kl_balance,
         recon_norm=w.recon_norm,
         reward_scale=w.reward_scale,
+        reward_head_kind=w.reward_head,
+        ensemble=w.ensemble,
     )
 
 
 def build_actor_value(
-    latent_dim: int, hidden: int, num_actions: int = NUM_ACTIONS
+    latent_dim: int, hidden: int, num_actions: int = NUM_ACTIONS, value_head: str = "mse"
 ) -> tuple[ProbabilisticActor, ValueOperator]:
-    """Categorical actor (``num_actions`` logits) and value MLPs on ``"latent"`` ``[*B, D + S]``."""
+    """Categorical actor (``num_actions`` logits) and value MLPs on ``"latent"`` ``[*B, D + S]``; ``value_head``
+    ``"twohot"`` makes the value a :class:`~freamer_rl.world_model.heads.TwoHotHead` (``imagination.value_head``)."""
     actor = ProbabilisticActor(
         KeyedModule(
             MLP(in_features=latent_dim, out_features=num_actions, num_cells=[hidden, hidden], activation_class=nn.SiLU),
@@ -188,10 +192,11 @@ def build_actor_value(
         return_log_prob=True,
         spec=Categorical(num_actions),
     )
-    value = ValueOperator(
-        MLP(in_features=latent_dim, out_features=1, num_cells=[hidden, hidden], activation_class=nn.SiLU),
-        in_keys=["latent"],
-    )
+    if value_head == "twohot":
+        net: nn.Module = TwoHotHead(latent_dim, hidden, layers=2)
+    else:
+        net = MLP(in_features=latent_dim, out_features=1, num_cells=[hidden, hidden], activation_class=nn.SiLU)
+    value = ValueOperator(net, in_keys=["latent"])
     return actor, value
 
 
@@ -336,7 +341,8 @@ class HealthAgent:
 
 def build_agent(cfg: HealthConfig) -> HealthAgent:
     wm = build_world_model(cfg)
-    actor, value = build_actor_value(wm.latent_dim, cfg.imagination.policy_hidden, wm.action_dim)
+    ic = cfg.imagination
+    actor, value = build_actor_value(wm.latent_dim, ic.policy_hidden, wm.action_dim, ic.value_head)
     return HealthAgent(cfg, wm, actor, value)
 
 

@@ -28,6 +28,8 @@ from freamer_rl.config.sections import BASE_RANGES, LoggingConfig, RunConfig
 from freamer_rl.data import PROTOCOL_SUBJECTS
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
+from freamer_rl.world_model.heads import REWARD_HEADS
+from freamer_rl.world_model.imagination import RETURN_NORMS
 
 __all__ = [
     "HealthEnvConfig",
@@ -118,6 +120,10 @@ class HealthWorldModelConfig:
     kl_balance: float | None = None  # None: the paper's KL(q || p); alpha: alpha KL(sg(q)||p) + (1-alpha) KL(q||sg(p))
     recon_norm: bool = True  # standardised reconstruction targets (WorldModel.recon_norm: keeps the HR features)
     reward_scale: float = 1.0  # weight of L_rew in Eq. A27
+    # mse: an MLP trained by MSE (the paper); twohot: DreamerV3's symlog two-hot (255 bins on [-20, 20] in symlog
+    # space, cross-entropy; the prediction is symexp of the expected bin) -- freamer_rl.world_model.heads
+    reward_head: str = "mse"
+    ensemble: int = 1  # K reward heads (independent inits); their spread feeds imagination.uncertainty_penalty
     lambda_fm: float = 0.1  # lambda_FM(WM), Table A20 (foundation encoder only)
     lambda_smooth: float = 1e-3  # lambda_s of Eq. A16 (foundation encoder only)
 
@@ -140,8 +146,17 @@ class HealthImaginationConfig:
     num_seeds: int = 256  # posterior latents per update (imagined rollouts: num_seeds x horizon)
     updates: int = 4  # ImaginationPPO updates per iteration
     lambda_return_actor_critic: bool = False
-    done_mode: str = "threshold"  # threshold | sample | never
+    # the continuation head (trained in Eq. A27 by BCE on 1 - terminated; the env terminates at HR >= 200 bpm) ends an
+    # imagined rollout: threshold (c < 0.5) | sample (Bernoulli) | never; GAE stops bootstrapping at a predicted
+    # termination and the steps after it are dropped from the loss (valid_imagination_mask)
+    done_mode: str = "threshold"
     policy_hidden: int = 128
+    value_head: str = "mse"  # mse (ClipPPOLoss's L2 critic) | twohot (symlog two-hot critic, cross-entropy)
+    # none: PPO standardises advantages per minibatch; percentile: DreamerV3's advantages / max(1, P95 - P5) of the
+    # lambda-returns (EMA 0.99), no standardisation
+    return_norm: str = "none"
+    # imagined reward = mean - uncertainty_penalty * std over the world_model.ensemble reward heads (needs K >= 2)
+    uncertainty_penalty: float = 0.0
 
 
 @dataclass
@@ -156,6 +171,9 @@ class HealthCollectConfig:
     # null = uniform. Uniform random data is ~98 % Alert-hold / level <= 0.25 (an Alert every 5 steps on average,
     # each holding the level <= 0.25 for 30 s): the world model then never sees the planned intensity
     explore_probs: list[float] | None = None
+    # random actions (prefill after its first batch, and the epsilon ones) drawn with p(a) proportional to
+    # 1 / (1 + count of a in the replay buffer) instead of explore_probs: more data for the rarely taken actions
+    balance_actions: bool = False
     buffer_capacity: int = 200_000
 
 
@@ -246,7 +264,10 @@ HEALTH_RANGES = {
             "imagination.horizon",
         )
     },
-    **{k: size_range(LAYERS_LIMIT) for k in ("encoder.mlp_layers", "encoder.heads", "encoder.fm_steps")},
+    **{
+        k: size_range(LAYERS_LIMIT)
+        for k in ("encoder.mlp_layers", "encoder.heads", "encoder.fm_steps", "world_model.ensemble")
+    },
     **{
         k: _NONNEG
         for k in (
@@ -266,6 +287,7 @@ HEALTH_RANGES = {
             "world_model.lambda_smooth",
             "imagination.entropy_coeff",
             "imagination.critic_coeff",
+            "imagination.uncertainty_penalty",
         )
     },
     **{
@@ -303,6 +325,7 @@ def validate_health_config(cfg: HealthConfig) -> None:
     for m in cfg.encoder.gate_init:
         if m not in MODALITIES:
             raise ConfigError(f"encoder.gate_init: unknown modality {m!r} (known: {', '.join(MODALITIES)})")
+    check_options(cfg)
     if cfg.imagination.done_mode not in ("threshold", "sample", "never"):
         raise ConfigError(
             f"imagination.done_mode: expected threshold, sample or never, got {cfg.imagination.done_mode!r}"
@@ -346,6 +369,27 @@ def validate_health_config(cfg: HealthConfig) -> None:
         raise ConfigError(str(err)) from None
     if cfg.collect.prefill_frames == 0 and cfg.collect.iterations == 0:
         raise ConfigError("collect: prefill_frames and iterations are both 0 (nothing to train on)")
+
+
+def check_options(cfg: HealthConfig) -> None:
+    """The world-model / imagination options of issue 22 part 2: choices and the pairs that need each other."""
+    for name, value, choices in (
+        ("world_model.reward_head", cfg.world_model.reward_head, REWARD_HEADS),
+        ("imagination.value_head", cfg.imagination.value_head, REWARD_HEADS),
+        ("imagination.return_norm", cfg.imagination.return_norm, RETURN_NORMS),
+    ):
+        if value not in choices:
+            raise ConfigError(f"{name}: expected one of {', '.join(choices)}, got {value!r}")
+    if cfg.imagination.uncertainty_penalty > 0 and cfg.world_model.ensemble < 2:
+        raise ConfigError(
+            f"imagination.uncertainty_penalty ({cfg.imagination.uncertainty_penalty}) needs world_model.ensemble >= 2 "
+            f"(got {cfg.world_model.ensemble}): one reward head has no spread to penalise"
+        )
+    if cfg.collect.balance_actions and cfg.collect.random_action_prob == 0 and cfg.collect.prefill_frames == 0:
+        raise ConfigError(
+            "collect.balance_actions: no random actions to balance (collect.random_action_prob and "
+            "collect.prefill_frames are both 0)"
+        )
 
 
 def _subject_list_problem(subjects: list[int]) -> str | None:

@@ -57,10 +57,19 @@ from typing import Any
 import torch
 from tensordict import TensorDict, TensorDictBase
 from tensordict.nn import TensorDictModuleBase
+from torchrl.envs import ExplorationType, set_exploration_type
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["ORACLE_DEFAULTS", "OraclePlanner", "planning_env"]
+__all__ = [
+    "ORACLE_DEFAULTS",
+    "OraclePlanner",
+    "planning_env",
+    "held_action_returns",
+    "imagined_held_returns",
+    "rank_agreement",
+    "action_ranking",
+]
 
 #: default planner settings (measured on the health_foundation env section: see the module docstring)
 ORACLE_DEFAULTS: dict[str, Any] = {"horizon": 12, "depth": 4, "noise_samples": 0, "seed": 0}
@@ -206,3 +215,116 @@ class OraclePlanner(TensorDictModuleBase):
             f"{type(self).__name__}(horizon={self.horizon}, depth={self.depth}, candidates={self.num_candidates}, "
             f"noise_samples={self.noise_samples}, tails={[type(t).__name__ for t in self.tails]})"
         )
+
+
+# ----------------------------------------------------------------------------------------------------------------------
+# diagnostic: does the world model rank the actions as the real env does? (issue 22 part 2, item 8)
+# ----------------------------------------------------------------------------------------------------------------------
+@torch.no_grad()
+def held_action_returns(sim: Any, num_actions: int, horizon: int, copy: Any = None) -> torch.Tensor:
+    """Real return ``[B, A]`` of holding each action ``a`` for ``horizon`` steps from the simulator's current state
+    (noise-free planning copy, reward counted up to and including the first ``done``), ``sim`` a
+    :func:`planning_env`; ``copy``: a planning copy of ``B * A`` rows to reuse."""
+    B = int(sim.batch_size[0])
+    rows = B * num_actions
+    copy = copy if copy is not None else sim.planning_copy(rows, hr_noise=0.0, seed=0)
+    copy.restore(sim.snapshot(), index=torch.arange(B, device=sim.device).repeat_interleave(num_actions))
+    action = torch.arange(num_actions, device=sim.device).repeat(B)
+    total = torch.zeros(rows, device=sim.device)
+    alive = torch.ones(rows, dtype=torch.bool, device=sim.device)
+    for _ in range(horizon):
+        nxt = copy.step(TensorDict({"action": action}, batch_size=[rows], device=sim.device))["next"]
+        total = total + alive * nxt["reward"].reshape(rows)
+        alive = alive & ~nxt["done"].reshape(rows)
+    return total.reshape(B, num_actions)
+
+
+@torch.no_grad()
+def imagined_held_returns(world_model: Any, latent: torch.Tensor, horizon: int, done_mode: str) -> torch.Tensor:
+    """Imagined return ``[B, A]`` of holding each action for ``horizon`` prior-mean RSSM steps from posterior
+    latents ``[B, D + S]``: reward head (ensemble mean) summed up to and including the first predicted termination
+    (``c < 0.5``; never with ``done_mode="never"``), the real counterpart's convention."""
+    wm = world_model
+    A, B = wm.action_dim, latent.shape[0]
+    h, z = latent.repeat_interleave(A, 0).split([wm.deter_dim, wm.stoch_dim], dim=-1)
+    a = torch.eye(A, dtype=latent.dtype, device=latent.device).repeat(B, 1)
+    total = latent.new_zeros(B * A)
+    alive = torch.ones(B * A, dtype=torch.bool, device=latent.device)
+    for _ in range(horizon):
+        h, _, z = wm.rssm.imagine_step(h, z, a, sample=False)
+        feat = torch.cat([h, z], dim=-1)
+        total = total + alive * wm.reward_head(feat).squeeze(-1)
+        if done_mode != "never":
+            alive = alive & (torch.sigmoid(wm.continue_head(feat).squeeze(-1)) >= 0.5)
+    return total.reshape(B, A)
+
+
+def _ranks(x: torch.Tensor) -> torch.Tensor:
+    """Average ranks (0-based, ties share the mean rank) along the last dim: ``[*B, A] -> [*B, A]``."""
+    less = (x.unsqueeze(-1) > x.unsqueeze(-2)).sum(-1).to(x.dtype)
+    equal = (x.unsqueeze(-1) == x.unsqueeze(-2)).sum(-1).to(x.dtype)
+    return less + (equal - 1) / 2
+
+
+def rank_agreement(imagined: torch.Tensor, real: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per row of ``[N, A]``: Spearman correlation of the two action rankings (Pearson of average ranks; NaN where
+    either is constant) and top-1 agreement (the imagined argmax is one of the real maxima). Returns ``[N]``, ``[N]``."""
+    ri, rr = _ranks(imagined), _ranks(real)
+    ri, rr = ri - ri.mean(-1, keepdim=True), rr - rr.mean(-1, keepdim=True)
+    rho = (ri * rr).sum(-1) / (ri.pow(2).sum(-1) * rr.pow(2).sum(-1)).sqrt()
+    best = imagined.argmax(-1, keepdim=True)
+    top1 = real.gather(-1, best).squeeze(-1) >= real.max(-1).values
+    return rho, top1
+
+
+@torch.no_grad()
+def action_ranking(
+    agent: Any, make_env: Any, *, horizon: int | None = None, num_times: int = 8, action_names: Sequence[str] = ()
+) -> dict[str, Any]:
+    """Imagined vs real return per held action, from the posterior latents of evaluation episodes.
+
+    The agent's policy (posterior-mean filter, deterministic actions) plays ``make_env(primer=...)`` (the evaluation
+    env, e.g. ``functools.partial(make_eval_env, cfg)``); at ``num_times`` steps spread over the episode every
+    element's state seeds both :func:`held_action_returns` (the real env, noise-free copy) and
+    :func:`imagined_held_returns` (the world model from the posterior latent at that step) for each action held
+    ``horizon`` steps (default ``imagination.horizon``). Returns ``horizon``, ``seeds`` (elements x times),
+    ``actions``, ``imagined_return`` / ``real_return`` (mean over seeds per action, ``[A]`` lists),
+    ``spearman_mean`` (mean over seeds of the per-seed Spearman, NaN-free seeds), ``top1_agreement`` (fraction of
+    seeds whose imagined best action is a real best one), ``spearman_of_means``, ``top1_of_means``.
+    """
+    cfg, wm = agent.cfg, agent.world_model
+    H = int(horizon or cfg.imagination.horizon)
+    last = cfg.env.episode_length - H - 1
+    if last < 0:
+        raise ValueError(f"action_ranking: horizon {H} does not fit in env.episode_length {cfg.env.episode_length}")
+    times = sorted({int(round(last * (i + 1) / num_times)) for i in range(num_times)})
+    policy = agent.policy(sample_latent=False)
+    env = make_env(primer=policy.make_tensordict_primer())
+    sim = planning_env(env)
+    wm.eval()
+    copy = sim.planning_copy(int(sim.batch_size[0]) * wm.action_dim, hr_noise=0.0, seed=0)
+    imagined, real = [], []
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        td = env.reset()
+        for t in range(times[-1] + 1):
+            td = policy(td)
+            if t in times:
+                real.append(held_action_returns(sim, wm.action_dim, H, copy))
+                imagined.append(imagined_held_returns(wm, td.get("latent"), H, cfg.imagination.done_mode))
+            _, td = env.step_and_maybe_reset(td)
+    env.close()
+    imag, rl = torch.cat(imagined), torch.cat(real)  # [N, A]
+    rho, top1 = rank_agreement(imag, rl)
+    rho_m, top1_m = rank_agreement(imag.mean(0, keepdim=True), rl.mean(0, keepdim=True))
+    names = list(action_names) or [str(a) for a in range(wm.action_dim)]
+    return {
+        "horizon": H,
+        "seeds": int(imag.shape[0]),
+        "actions": names,
+        "imagined_return": [round(float(v), 4) for v in imag.mean(0)],
+        "real_return": [round(float(v), 4) for v in rl.mean(0)],
+        "spearman_mean": float(rho[~rho.isnan()].mean()) if bool((~rho.isnan()).any()) else float("nan"),
+        "top1_agreement": float(top1.float().mean()),
+        "spearman_of_means": float(rho_m[0]),
+        "top1_of_means": bool(top1_m[0]),
+    }

@@ -11,7 +11,8 @@ One :class:`HealthTrainer` owns one run directory through the lifecycle every tr
     <run_dir>/metrics/attempt_NN/   the TorchRL logger's files (``logging.backend``) with the hyperparameters
     <run_dir>/checkpoints/          the newest 3 resume checkpoints (after every iteration) + ``latest``
     <run_dir>/learning_curve.png    training and evaluation return vs frames (``plot_learning_curve``)
-    <run_dir>/summary.json          final figures
+    <run_dir>/summary.json          final figures, with "action_ranking": imagined vs real return per held action
+                                    from evaluation states (freamer_rl.health.oracle.action_ranking)
     <run_dir>/checkpoint.pt         the final agent (world model + actor + value + config; ``load_agent``)
 
 Loop (``collect.iterations`` times, after ``collect.prefill_frames`` frames of random actions drawn from
@@ -53,7 +54,9 @@ from freamer_rl.config.sections import CollectorConfig, OptimConfig
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, parameter_table, save_agent
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
-from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, eval_subjects, evaluate_agent
+from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, eval_subjects, evaluate_agent, make_eval_env
+from freamer_rl.health.oracle import action_ranking
+from freamer_rl.health.reference import ACTION_NAMES
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.run.collection import make_collector
 from freamer_rl.run.lifecycle import RunLifecycle
@@ -180,7 +183,7 @@ class HealthTrainer:
         self.wm_opt = torch.optim.Adam(wm.parameters(), lr=wc.lr, eps=wc.adam_eps)
         self.wm_stats = StepStats("health world model")
         self.algo = ImaginationPPO(
-            RSSMWorldModelEnv(wm, done_mode=ic.done_mode),
+            RSSMWorldModelEnv(wm, done_mode=ic.done_mode, uncertainty_penalty=ic.uncertainty_penalty),
             self.agent.actor,
             self.agent.value,
             horizon=ic.horizon,
@@ -195,7 +198,9 @@ class HealthTrainer:
             adam_eps=ic.adam_eps,
             max_grad_norm=ic.max_grad_norm,
             lambda_return_actor_critic=ic.lambda_return_actor_critic,
+            return_norm=ic.return_norm,
         )
+        self.action_counts = torch.zeros(wm.action_dim)  # actions in the replay buffer (collect.balance_actions)
         self.frames = 0
         self.iteration = 0  # loop iterations finished
         self.prefilled = False
@@ -215,6 +220,7 @@ class HealthTrainer:
             "frames": self.frames,
             "iteration": self.iteration,
             "prefilled": self.prefilled,
+            "return_scale": None if self.algo.return_scale is None else self.algo.return_scale.state_dict(),
         }
 
     def _resume(self, ckpt: dict[str, Any]) -> None:
@@ -233,6 +239,9 @@ class HealthTrainer:
                 replay = TensorDict(flat, batch_size=[len(next(iter(flat.values())))]).unflatten_keys("/")
                 self.rb.extend(replay)
                 self._traj_offset = int(replay.get(("collector", "traj_ids")).max()) + 1
+                self._count_actions(replay.get("action"))
+            if self.algo.return_scale is not None and ckpt.get("return_scale") is not None:
+                self.algo.return_scale.load_state_dict(ckpt["return_scale"])
             self.frames, self.iteration = int(ckpt["frames"]), int(ckpt["iteration"])
             self.prefilled = bool(ckpt["prefilled"])
         logger.info("resumed from %s after iteration %d (%d frames)", self.resumed_from, self.iteration, self.frames)
@@ -246,7 +255,17 @@ class HealthTrainer:
         if self._traj_offset:
             stored.set(("collector", "traj_ids"), stored.get(("collector", "traj_ids")) + self._traj_offset)
         self.rb.extend(stored)
+        self._count_actions(stored.get("action"))
         return episode_stats(data)
+
+    def _count_actions(self, action: torch.Tensor) -> None:
+        """Add the stored actions to the counts; with ``collect.balance_actions`` the random actions are drawn with
+        ``p(a) = (1 / (1 + n_a)) / sum_b 1 / (1 + n_b)`` from then on (a host-side count, outside any forward)."""
+        n = self.action_counts.shape[0]
+        self.action_counts += torch.bincount(action.reshape(-1).long(), minlength=n)[:n].float()
+        if self.cfg.collect.balance_actions:
+            inv = 1.0 / (1.0 + self.action_counts)
+            self.policy.explore_probs = inv / inv.sum()
 
     def _sample(self) -> TensorDictBase:
         return as_sequences(self.rb.sample(), self.cfg.world_model.seq_len)
@@ -362,6 +381,12 @@ class HealthTrainer:
 
     def _finish(self, metrics: Any) -> dict[str, Any]:
         final = {f"eval_{k}": v for k, v in evaluate_agent(self.agent).items()}
+        # imagined vs real return per held action on the evaluation env (issue 22 part 2): summary "action_ranking"
+        self._ranking = action_ranking(
+            self.agent, functools.partial(make_eval_env, self.cfg), action_names=ACTION_NAMES
+        )
+        final["eval_action_rank_spearman"] = self._ranking["spearman_mean"]
+        final["eval_action_rank_top1"] = self._ranking["top1_agreement"]
         if self.rows:
             self.rows[-1].update(final)
             self.life.rewrite_progress()  # the last row gained the evaluation columns
@@ -409,6 +434,8 @@ class HealthTrainer:
             "params_encoder": encoder,
             "params_policy": actor + value,
             "gates": self.agent.world_model.encoder.gates or None,
+            "action_ranking": self._ranking,
+            "action_counts": [int(c) for c in self.action_counts],
             "wm_skipped_steps": self.wm_stats.skipped,
             "ppo_skipped_steps": self.algo.step_stats.skipped,
             "resumed_from": str(self.resumed_from) if self.resumed_from else None,

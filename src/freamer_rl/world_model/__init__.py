@@ -2,6 +2,7 @@
 
 * :mod:`.rssm` -- :class:`RSSM` (Eqs. A23-A25), :class:`WorldModel` (loss Eq. A27); helpers in :mod:`.functional`,
   default encoder/decoder in :mod:`.obs_nets`, :func:`train_world_model` in :mod:`.training`.
+* :mod:`.heads` -- symlog two-hot heads, head ensembles, DreamerV3's percentile return scale (issue 22 options).
 * :mod:`.metrics` -- reconstruction MSE, imagination horizon, seed latents (evaluation of a trained world model).
 * :mod:`.imagination` -- :class:`RSSMWorldModelEnv` (a TorchRL ``ModelBasedEnvBase``), :class:`ImaginationPPO`.
 * :mod:`.anomaly` -- :class:`KLAnomalyDetector`, :class:`KLAnomalyTransform`, :func:`plot_anomaly_timeline` (J.5).
@@ -11,6 +12,7 @@
 from freamer_rl.world_model import anomaly
 from freamer_rl.world_model.anomaly import *  # noqa: F403
 from freamer_rl.world_model.functional import action_to_onehot, free_nats_kl, gaussian_kl, symexp, symlog
+from freamer_rl.world_model.heads import HeadEnsemble, PercentileReturnScale, TwoHotHead, twohot_decode, twohot_encode
 from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv, valid_imagination_mask
 from freamer_rl.world_model.obs_nets import MLPObsDecoder, MLPObsEncoder
 from freamer_rl.world_model.rssm import RSSM, WorldModel
@@ -27,6 +29,11 @@ __all__ = [
     "symlog",
     "symexp",
     "action_to_onehot",
+    "TwoHotHead",
+    "HeadEnsemble",
+    "PercentileReturnScale",
+    "twohot_encode",
+    "twohot_decode",
     "as_sequences",
     "train_world_model",
     "RSSMWorldModelEnv",

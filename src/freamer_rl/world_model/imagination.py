@@ -29,6 +29,7 @@ from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE, TDLambdaEstimator
 
 from freamer_rl.run.optim import StepStats, optimizer_step
+from freamer_rl.world_model.heads import PercentileReturnScale, TwoHotHead
 from freamer_rl.world_model.rssm import WorldModel
 
 logger = logging.getLogger(__name__)
@@ -36,6 +37,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["RSSMWorldModelEnv", "ImaginationPPO", "valid_imagination_mask"]
 
 _DONE_MODES = ("threshold", "sample", "never")
+RETURN_NORMS = ("none", "percentile")
 
 
 class RSSMWorldModelEnv(ModelBasedEnvBase):
@@ -54,6 +56,8 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
             ``truncated`` is always False; ``done = terminated``.
         continue_threshold: threshold of ``"threshold"`` mode.
         sample: sample ``z' ~ p(z | h')`` (default) or use the prior mean.
+        uncertainty_penalty: ``lambda_u``: the imagined reward is ``r_hat(s') - lambda_u * std_k r_hat_k(s')`` over the
+            members of an ensemble reward head (:meth:`WorldModel.reward_std`; zero spread for a single head).
         deter_key, stoch_key, latent_key: observation/state keys.
 
     Behaviour notes:
@@ -76,6 +80,7 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
         done_mode: str = "threshold",
         continue_threshold: float = 0.5,
         sample: bool = True,
+        uncertainty_penalty: float = 0.0,
         deter_key: NestedKey = "deter",
         stoch_key: NestedKey = "stoch",
         latent_key: NestedKey = "latent",
@@ -86,6 +91,9 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
         self.done_mode = done_mode
         self.continue_threshold = continue_threshold
         self.sample_prior = sample
+        if uncertainty_penalty < 0:
+            raise ValueError(f"uncertainty_penalty: expected >= 0, got {uncertainty_penalty}")
+        self.uncertainty_penalty = float(uncertainty_penalty)
         self.deter_key, self.stoch_key, self.latent_key = deter_key, stoch_key, latent_key
         bs = self.batch_size
         D, S = world_model.deter_dim, world_model.stoch_dim
@@ -162,6 +170,8 @@ class RSSMWorldModelEnv(ModelBasedEnvBase):
         h, _, z = wm.rssm.imagine_step(h, z, action, sample=self.sample_prior)
         feat = torch.cat([h, z], dim=-1)
         reward = wm.reward_head(feat)
+        if self.uncertainty_penalty > 0:  # a config constant, not a tensor value: no host sync
+            reward = reward - self.uncertainty_penalty * wm.reward_std(feat)
         if self.done_mode == "never":
             terminated = torch.zeros(*tensordict.batch_size, 1, dtype=torch.bool, device=h.device)
         else:
@@ -213,6 +223,13 @@ class ImaginationPPO:
             sg(R^lambda_t))^2``. Gradients do *not* flow through the imagined dynamics (discrete actions; the
             world model is frozen during policy learning).
         mask_after_termination: drop imagined steps after the first predicted termination from the loss.
+        return_norm: ``"none"`` (PPO: ClipPPOLoss's per-minibatch advantage standardisation; the lambda-return
+            path: the per-batch ``max(1, P95 - P5)``) or ``"percentile"`` (DreamerV3: advantages divided by
+            ``S = max(1, EMA_0.99(P95) - EMA_0.99(P5))`` of the lambda-returns,
+            :class:`~freamer_rl.world_model.heads.PercentileReturnScale`, in both paths; PPO then does not
+            standardise).
+        A value network whose module is a :class:`~freamer_rl.world_model.heads.TwoHotHead` is trained by its
+        two-hot cross-entropy on ``value_target`` (weight ``critic_coeff``) instead of ClipPPOLoss's L2.
 
     :meth:`update` takes the seed latents and returns a dict of float metrics.
     """
@@ -236,8 +253,14 @@ class ImaginationPPO:
         max_grad_norm: float = 1.0,
         lambda_return_actor_critic: bool = False,
         mask_after_termination: bool = True,
+        return_norm: str = "none",
         optimizer: torch.optim.Optimizer | None = None,
     ) -> None:
+        if return_norm not in RETURN_NORMS:
+            raise ValueError(f"return_norm: expected one of {RETURN_NORMS}, got {return_norm!r}")
+        self.return_scale = PercentileReturnScale() if return_norm == "percentile" else None
+        head = getattr(value, "module", None)
+        self.twohot_value = head if isinstance(head, TwoHotHead) else None
         self.env = env
         self.policy = policy
         self.value = value
@@ -260,11 +283,11 @@ class ImaginationPPO:
                 value,
                 clip_epsilon=clip_epsilon,
                 entropy_coeff=entropy_coeff,
-                critic_coeff=critic_coeff,
+                critic_coeff=0.0 if self.twohot_value is not None else critic_coeff,  # 0: no L2 critic term
                 loss_critic_type="l2",
-                normalize_advantage=True,
+                normalize_advantage=self.return_scale is None,
             )
-            params = list(self.loss_module.parameters())
+            params = list(self.loss_module.parameters()) + list(value.parameters())
         # de-duplicate (shared trunks) while keeping order
         seen: set[int] = set()
         self._params = [p for p in params if p.requires_grad and not (id(p) in seen or seen.add(id(p)))]
@@ -292,6 +315,10 @@ class ImaginationPPO:
             "valid_fraction": float(mask.float().mean()),
         }
         data = traj[mask]
+        if self.return_scale is not None:
+            scale = self.return_scale.update(data.get("value_target"))
+            data.set("advantage", data.get("advantage") / scale)
+            metrics["return_scale"] = float(scale)
         if self.lambda_return_actor_critic:
             metrics.update(self._lambda_return_step(data))
         else:
@@ -316,7 +343,10 @@ class ImaginationPPO:
             for start in range(0, n, mb):
                 sub = data[perm[start : start + mb]]
                 out = self.loss_module(sub)
-                loss = out["loss_objective"] + out["loss_critic"] + out.get("loss_entropy", 0.0)
+                loss = out["loss_objective"] + out.get("loss_entropy", 0.0)
+                if self.twohot_value is not None:
+                    out.set("loss_critic", self._twohot_critic(sub))
+                loss = loss + out["loss_critic"]
                 gn = self._step(loss)
                 for k in ("loss_objective", "loss_critic", "loss_entropy", "entropy", "clip_fraction", "kl_approx"):
                     if k in out.keys():
@@ -328,7 +358,11 @@ class ImaginationPPO:
     def _lambda_return_step(self, data: TensorDictBase) -> dict[str, float]:
         target = data.get("value_target").detach()
         adv = data.get("advantage").detach()
-        scale = torch.clamp(torch.quantile(target.flatten(), 0.95) - torch.quantile(target.flatten(), 0.05), min=1.0)
+        if self.return_scale is None:
+            q = torch.quantile(target.flatten(), torch.tensor([0.05, 0.95]))
+            scale = torch.clamp(q[1] - q[0], min=1.0)
+        else:  # advantages already divided by the EMA scale in update()
+            scale = torch.ones(())
         td = data.exclude("state_value").clone(False)
         dist = self.policy.get_dist(td)
         log_prob = dist.log_prob(td.get(self.env.action_key))
@@ -337,8 +371,11 @@ class ImaginationPPO:
         entropy = entropy.reshape(adv.shape[0], -1).sum(-1)
         loss_actor = -(log_prob * (adv.reshape(-1) / scale)).mean()
         loss_entropy = -self.entropy_coeff * entropy.mean()
-        value = self.value(td.select(*self.value.in_keys)).get(self.value.out_keys[0])
-        loss_critic = self.critic_coeff * 0.5 * (value - target).pow(2).mean()
+        if self.twohot_value is not None:
+            loss_critic = self._twohot_critic(data)
+        else:
+            value = self.value(td.select(*self.value.in_keys)).get(self.value.out_keys[0])
+            loss_critic = self.critic_coeff * 0.5 * (value - target).pow(2).mean()
         gn = self._step(loss_actor + loss_entropy + loss_critic)
         return {
             "loss_actor": float(loss_actor.detach()),
@@ -348,3 +385,9 @@ class ImaginationPPO:
             "return_scale": float(scale),
             "grad_norm": gn,
         }
+
+    def _twohot_critic(self, data: TensorDictBase) -> torch.Tensor:
+        """``critic_coeff * CE(twohot(sg(R^lambda)), V_logits(s))`` of a two-hot value head."""
+        feat = data.get(self.value.in_keys[0])
+        target = data.get("value_target").detach().reshape(feat.shape[:-1])
+        return self.critic_coeff * self.twohot_value.loss(feat, target)

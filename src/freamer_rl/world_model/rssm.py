@@ -53,6 +53,7 @@ from freamer_rl.world_model.functional import (
     symexp,
     symlog,
 )
+from freamer_rl.world_model.heads import head_loss, make_scalar_head
 from freamer_rl.world_model.obs_nets import MLPObsDecoder, MLPObsEncoder
 
 logger = logging.getLogger(__name__)
@@ -246,7 +247,10 @@ class WorldModel(nn.Module):
         beta: KL weight ``beta_d`` (1.0 in J.3; Table A20 lists 0.5).
         free_nats: per-step KL floor (1.0, Table A20).
         kl_balance: ``None`` for the paper's plain ``KL(q || p)``; a float ``alpha`` for DreamerV2-style balancing
-            ``alpha KL(sg(q) || p) + (1 - alpha) KL(q || sg(p))``.
+            ``alpha KL(sg(q) || p) + (1 - alpha) KL(q || sg(p))``. Free nats clamp each step's balanced KL; the
+            two terms have the same value, so this equals DreamerV3's per-term clip ``dyn max(fn, KL(sg(q)||p)) +
+            rep max(fn, KL(q||sg(p)))`` in value and gradient with ``beta = dyn + rep``, ``alpha = dyn / beta``
+            (DreamerV3's 0.5 / 0.1: ``beta = 0.6``, ``alpha = 5/6``; tested in test_world_model_options).
         symlog_targets: reconstruct ``symlog(obs)`` (DreamerV3) instead of the raw observation. The reported
             ``mse_<key>`` metrics are always in raw observation units.
         recon_norm: reconstruct per-feature standardised observations ``(obs - mean) / max(std, norm_std_floor)``
@@ -258,6 +262,9 @@ class WorldModel(nn.Module):
             at its free-nats floor.
         norm_std_floor: lower bound of the std used by ``recon_norm`` (near-constant features).
         reward_scale, continue_scale: weights of ``L_rew`` and ``L_con``.
+        reward_head_kind: default reward head: ``"mse"`` (an MLP, MSE loss) or ``"twohot"`` (symlog two-hot,
+            :class:`~freamer_rl.world_model.heads.TwoHotHead`); ``ensemble`` K > 1 makes it K such heads
+            (:class:`~freamer_rl.world_model.heads.HeadEnsemble`: mean prediction, :meth:`reward_std` their spread).
         action_key, reward_key, terminated_key, done_key: TensorDict keys read by :meth:`loss`.
     """
 
@@ -284,6 +291,8 @@ class WorldModel(nn.Module):
         norm_std_floor: float = 1e-2,
         reward_scale: float = 1.0,
         continue_scale: float = 1.0,
+        reward_head_kind: str = "mse",
+        ensemble: int = 1,
         action_key: NestedKey = "action",
         reward_key: NestedKey = ("next", "reward"),
         terminated_key: NestedKey = ("next", "terminated"),
@@ -300,7 +309,9 @@ class WorldModel(nn.Module):
         self.stoch_dim = self.rssm.stoch_dim
         latent = self.latent_dim
         self.decoder = decoder if decoder is not None else MLPObsDecoder(latent, self.obs_dims, hidden)
-        self.reward_head = reward_head if reward_head is not None else mlp(latent, hidden, 1)
+        if reward_head is None:
+            reward_head = make_scalar_head(reward_head_kind, latent, hidden, ensemble)
+        self.reward_head = reward_head
         self.continue_head = continue_head if continue_head is not None else mlp(latent, hidden, 1)
         if kl_balance is not None and not 0.0 <= kl_balance <= 1.0:
             raise ValueError(f"kl_balance: expected None or a float in [0, 1], got {kl_balance}")
@@ -327,6 +338,13 @@ class WorldModel(nn.Module):
     @property
     def latent_dim(self) -> int:
         return self.deter_dim + self.stoch_dim
+
+    def reward_std(self, feat: torch.Tensor) -> torch.Tensor:
+        """Spread ``[*B, 1]`` of an ensemble reward head over its members at latent ``feat [*B, L]`` (zeros for a
+        single head)."""
+        if hasattr(self.reward_head, "std"):
+            return self.reward_head.std(feat)
+        return feat.new_zeros(*feat.shape[:-1], 1)
 
     # -- pieces ---------------------------------------------------------------------------------------------------
     @staticmethod
@@ -510,7 +528,7 @@ class WorldModel(nn.Module):
         kl_t = self.kl(out)
         loss_kl = free_nats_kl(kl_t, self.free_nats)
         nxt = feat[..., 1:, :]
-        loss_rew = F.mse_loss(self.reward_head(nxt).squeeze(-1), seq["reward"])
+        loss_rew = head_loss(self.reward_head, nxt, seq["reward"])  # MSE, two-hot CE, or the ensemble's mean
         loss_con = F.binary_cross_entropy_with_logits(self.continue_head(nxt).squeeze(-1), seq["cont"])
         total = loss_rec + self.beta * loss_kl + self.reward_scale * loss_rew + self.continue_scale * loss_con
         aux = self._aux_terms(aux_loss, seq)
