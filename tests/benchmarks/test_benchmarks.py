@@ -138,6 +138,7 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
                         "eval_violations_mean": 0.5 * seed,
                         "recon_mse": 0.25,
                         "imagination_horizon": 10.0 + seed,
+                        "eval_fraction_of_oracle": 0.5 + 0.1 * seed,
                         "params_encoder": 1234 if label == "mlp" else 5678,
                     },
                 )
@@ -150,7 +151,7 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
     mlp, foundation = returns["mlp"], returns["foundation"]
     assert (
         f"| mlp | 3 | {statistics.mean(mlp):.1f} +- {statistics.stdev(mlp):.1f} | 0.50 +- 0.50 | 0.250 +- 0.000 "
-        f"| 11.0 +- 1.0 | 1,234 |  |" in rows["mlp"]
+        f"| 11.0 +- 1.0 | 0.600 +- 0.100 |  |  |  | 1,234 |  |" in rows["mlp"]  # no rule or rank columns here
     )
     delta = statistics.mean(foundation) - statistics.mean(mlp)
     assert f"| 5,678 | {delta:+.1f} | {statistics.mean(foundation):.1f} [" in rows["foundation"]
@@ -164,11 +165,12 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
     assert float(ratio) == round(statistics.mean(foundation) / statistics.mean(mlp), 2)
     assert r_low <= float(ratio) <= r_high and r_low >= 48.0 / 64.0 and r_high <= 53.0 / 50.0
     header = (tmp_path / "runs.csv").read_text().splitlines()[0].split(",")
-    assert header[-9:] == [
+    assert header[-10:] == [  # a health column appears only when some run has it (no rule or rank values here)
         "eval_return_mean",
         "eval_violations_mean",
         "recon_mse",
         "imagination_horizon",
+        "eval_fraction_of_oracle",
         "params_encoder",
         "encoder",
         "eval_subjects",

@@ -239,8 +239,8 @@ def test_tiny_loso_fold_trains_evaluates_on_the_held_out_subject_and_records_it(
     )
     built = _spy_eval_envs(monkeypatch)
     summary = train_health(cfg, tmp_path / "run")
-    # the final evaluation and the action-ranking diagnostic, both on the held-out subject
-    assert len(built) == 2 and all(env.base_env.subjects == (101,) for env in built)
+    # the final evaluation, the action-ranking diagnostic and each eval.references policy, all on the held-out subject
+    assert len(built) == 2 + len(cfg.eval.references) and all(env.base_env.subjects == (101,) for env in built)
     on_disk = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert on_disk["train_subjects"] == [102, 104] and on_disk["eval_subjects"] == [101]
     assert np.isfinite(summary["eval_return_mean"]) and summary["eval_episodes"] == 2

@@ -55,6 +55,7 @@ TINY = [
     "eval.horizon_max=8",
     "eval.mse_windows=4",
     "eval.horizon_windows=4",
+    "eval.references=[continue]",  # the oracle planner of the default list: test_world_model_options
     "logging.progress_bar=false",
 ]
 

@@ -22,6 +22,7 @@ from freamer_rl.health.oracle import (
     planning_env,
     rank_agreement,
 )
+from freamer_rl.health.reference import evaluate_reference
 from freamer_rl.health.trainer import HealthTrainer
 from freamer_rl.trainers.health import STRUCTURAL
 from freamer_rl.world_model.functional import free_nats_kl, gaussian_kl, symexp, symlog
@@ -231,6 +232,8 @@ def test_held_action_returns_match_the_real_env():
             ["collect.balance_actions=true", "collect.random_action_prob=0", "collect.prefill_frames=0"],
             r"collect\.balance_actions",
         ),
+        (["eval.references=[oracle, mpc]"], r"eval\.references"),
+        (["eval.references=[continue, continue]"], r"eval\.references"),
     ],
 )
 def test_option_errors_name_the_field(overrides, field):
@@ -295,3 +298,19 @@ def test_action_ranking_of_an_untrained_agent():
     assert out["seeds"] == 4 and out["imagined_return"] == [pytest.approx(0.1 * H, rel=1e-4)] * 5
     assert len(set(out["real_return"])) > 1
     assert math.isnan(out["spearman_mean"])  # a constant imagined ranking has no rank correlation
+
+
+def test_summary_reports_the_run_as_a_fraction_of_the_oracle_and_the_rule(tmp_path):
+    """The default eval.references: the oracle planner, the heart-rate rule and always-Continue on the run's own
+    evaluation episodes; the fractions are the run's return over theirs."""
+    torch.manual_seed(0)
+    overrides = [*TINY, "collect.iterations=1", "eval.references=[oracle, hr_threshold, continue]"]
+    cfg = load_health_config(MLP_RECIPE, overrides)
+    summary = HealthTrainer(cfg, tmp_path / "run", structural=STRUCTURAL).train()
+    refs = {name: evaluate_reference(cfg, name)["return_mean"] for name in ("oracle", "hr_threshold", "continue")}
+    for name, ret in refs.items():
+        assert summary[f"eval_ref_{name}_return"] == pytest.approx(ret)  # the same episodes, recomputed
+    assert refs["oracle"] > refs["continue"]  # the planner searches over Continue too: it is not below it here
+    agent = summary["eval_return_mean"]
+    assert summary["eval_fraction_of_oracle"] == pytest.approx(agent / refs["oracle"])
+    assert summary["eval_vs_hr_threshold"] == pytest.approx(agent / refs["hr_threshold"])

@@ -21,6 +21,9 @@ HEALTH_METRICS = (
     ("eval_violations_mean", "Violations", 2),
     ("recon_mse", "MSE", 3),
     ("imagination_horizon", "Horizon", 1),
+    # the run's return over the oracle planner's / the heart-rate rule's on the same episodes (eval.references)
+    ("eval_fraction_of_oracle", "of oracle", 3),
+    ("eval_vs_hr_threshold", "/ HR rule", 3),
     # does the world model rank the held actions as the real env does (freamer_rl.health.oracle.action_ranking)
     ("eval_action_rank_spearman", "Rank rho", 2),
     ("eval_action_rank_top1", "Top-1", 2),
@@ -78,7 +81,10 @@ def health_markdown(rows: list[dict]) -> list[str]:
         "",
         "Reward: real-env evaluation return per episode; Violations: steps with HR > 160 bpm per episode; MSE: "
         "reconstruction MSE per feature (raw units, held-out episodes); Horizon: open-loop imagined steps before "
-        "the reward prediction error exceeds the tolerance. Mean +- sample std across the seeds done; the reward's "
+        "the reward prediction error exceeds the tolerance; Rank rho / Top-1: Spearman correlation of imagined and real "
+        "returns of each action held for the imagination horizon, and how often the imagined best action is a real "
+        "best one; of oracle / / HR rule: the return over the oracle planner's / the heart-rate rule's on the same "
+        "episodes. Mean +- sample std across the seeds done; the reward's "
         "mean with a 95% bootstrap interval over the seeds, each seed's value, and the ratio of mean rewards to the "
         "first label's with a 95% bootstrap interval (each arm's seeds resampled on their own).",
         "",

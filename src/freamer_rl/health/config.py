@@ -186,6 +186,10 @@ class HealthEvalConfig:
     # held-out subjects of the evaluation (leave-one-subject-out: the subject env.subjects leaves out); None: the
     # training subjects. The reference policies and the oracle (freamer_rl.health.reference) read the same field
     subjects: list[int] | None = None
+    # reference policies evaluated on the same episodes after training (freamer_rl.health.reference): summary.json gets
+    # eval_ref_<name>_return, and eval_fraction_of_oracle / eval_vs_hr_threshold when oracle / hr_threshold are listed
+    # (the oracle planner takes ~15 s on 16 episodes of 120 steps); [] evaluates none
+    references: list[str] = field(default_factory=lambda: ["oracle", "hr_threshold", "continue"])
     mse_windows: int = 64
     horizon_context: int = 8
     horizon_max: int = 48
@@ -372,7 +376,16 @@ def validate_health_config(cfg: HealthConfig) -> None:
 
 
 def check_options(cfg: HealthConfig) -> None:
-    """The world-model / imagination options of issue 22 part 2: choices and the pairs that need each other."""
+    """The world-model / imagination options of issue 22 part 2: choices and the pairs that need each other; the
+    reference policies of ``eval.references``."""
+    # imported here: reference -> evaluation -> agent imports this module
+    from freamer_rl.health.reference import REFERENCE_POLICIES
+
+    refs = cfg.eval.references
+    if not isinstance(refs, list) or any(r not in REFERENCE_POLICIES for r in refs) or len(set(refs)) != len(refs):
+        raise ConfigError(
+            f"eval.references: expected a list of distinct names from {', '.join(REFERENCE_POLICIES)}, got {refs!r}"
+        )
     for name, value, choices in (
         ("world_model.reward_head", cfg.world_model.reward_head, REWARD_HEADS),
         ("imagination.value_head", cfg.imagination.value_head, REWARD_HEADS),

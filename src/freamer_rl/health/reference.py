@@ -47,6 +47,7 @@ __all__ = [
     "reference_rollout",
     "episode_returns",
     "evaluate_reference",
+    "reference_summary",
     "bootstrap_mean_ci",
     "CEILING_POLICIES",
     "ceiling_table",
@@ -180,6 +181,24 @@ def evaluate_reference(
     :class:`~freamer_rl.health.config.HealthConfig` ``cfg`` (:func:`reference_rollout`): ``return_mean``,
     ``return_std``, ``violations_mean``, ``length_mean``, ``episodes``."""
     return rollout_metrics(reference_rollout(cfg, policy, num_envs=num_envs, seed=seed))
+
+
+def reference_summary(cfg: Any, policies: Sequence[str], agent_return: float) -> dict[str, float]:
+    """The reference policies' mean return on the evaluation episodes of ``cfg`` (:func:`evaluate_reference`) as
+    ``eval_ref_<name>_return``, and the learned policy's ``agent_return`` (the same episodes) as a fraction of two of
+    them: ``eval_fraction_of_oracle`` (when ``"oracle"`` is listed) and ``eval_vs_hr_threshold`` (``"hr_threshold"``)."""
+    out: dict[str, float] = {}
+    for name in policies:
+        start = time.perf_counter()
+        ret = float(evaluate_reference(cfg, name)["return_mean"])
+        logger.info("reference %s: return %.2f (%.1f s)", name, ret, time.perf_counter() - start)
+        out[f"eval_ref_{name}_return"] = ret
+    for name, key in (("oracle", "eval_fraction_of_oracle"), ("hr_threshold", "eval_vs_hr_threshold")):
+        ref = out.get(f"eval_ref_{name}_return")
+        if ref is not None:
+            # a reference return of 0 has no fraction: NaN, never a silent 0 or inf
+            out[key] = agent_return / ref if ref != 0 else float("nan")
+    return out
 
 
 def bootstrap_mean_ci(

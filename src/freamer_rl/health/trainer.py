@@ -12,7 +12,9 @@ One :class:`HealthTrainer` owns one run directory through the lifecycle every tr
     <run_dir>/checkpoints/          the newest 3 resume checkpoints (after every iteration) + ``latest``
     <run_dir>/learning_curve.png    training and evaluation return vs frames (``plot_learning_curve``)
     <run_dir>/summary.json          final figures, with "action_ranking": imagined vs real return per held action
-                                    from evaluation states (freamer_rl.health.oracle.action_ranking)
+                                    from evaluation states (freamer_rl.health.oracle.action_ranking), and the
+                                    reference policies' returns on the same episodes (eval.references: the oracle
+                                    planner, the heart-rate rule, always-Continue) with the run's fraction of them
     <run_dir>/checkpoint.pt         the final agent (world model + actor + value + config; ``load_agent``)
 
 Loop (``collect.iterations`` times, after ``collect.prefill_frames`` frames of random actions drawn from
@@ -56,7 +58,7 @@ from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
 from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, eval_subjects, evaluate_agent, make_eval_env
 from freamer_rl.health.oracle import action_ranking
-from freamer_rl.health.reference import ACTION_NAMES
+from freamer_rl.health.reference import ACTION_NAMES, reference_summary
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.run.collection import make_collector
 from freamer_rl.run.lifecycle import RunLifecycle
@@ -387,6 +389,8 @@ class HealthTrainer:
         )
         final["eval_action_rank_spearman"] = self._ranking["spearman_mean"]
         final["eval_action_rank_top1"] = self._ranking["top1_agreement"]
+        # the oracle planner and the rules on the same episodes: the learned policy as a fraction of each (eval.references)
+        final.update(reference_summary(self.cfg, self.cfg.eval.references, final["eval_return_mean"]))
         if self.rows:
             self.rows[-1].update(final)
             self.life.rewrite_progress()  # the last row gained the evaluation columns
