@@ -157,7 +157,8 @@ def bench_collect(rounds: int, frames: int) -> list[str]:
     try:
         trainer = Trainer(cfg, run_dir / "run", resume=False)
         torch.set_num_threads(threads)
-        models = [v for v in vars(trainer).values() if isinstance(v, nn.Module)]
+        # the policy lives in trainer.modules (FreamerModules, a dataclass); the loss modules hold references to it
+        models = [trainer.modules.actor_value, *(v for v in vars(trainer).values() if isinstance(v, nn.Module))]
         if not any(isinstance(m, SlotAttention) for root in models for m in root.modules()):
             raise RuntimeError("found no SlotAttention in the trainer's modules: the A/B would time one path twice")
         collector = trainer.make_collector((2 * rounds + 2) * frames)
