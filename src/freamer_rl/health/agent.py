@@ -8,6 +8,7 @@ actions are read from the env's specs (:func:`env_dims`), not repeated here.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from tensordict.nn import TensorDictModule, TensorDictModuleBase
 from torch import nn
 from torchrl.data import Categorical, Unbounded
 from torchrl.envs import Compose, EnvBase, InitTracker, TransformedEnv
-from torchrl.envs.transforms import TensorDictPrimer
+from torchrl.envs.transforms import TensorDictPrimer, Transform
 from torchrl.modules import MLP, ProbabilisticActor, ValueOperator
 
 from freamer_rl.config.loader import config_from_dict
@@ -84,11 +85,13 @@ def make_health_env(
     num_envs: int | None = None,
     seed: int | None = None,
     primer: TensorDictPrimer | None = None,
+    corrupt: Sequence[Transform] = (),
     **overrides: Any,
 ) -> EnvBase:
     """The real env through the ``freamer_rl.envs`` registry (``env.adapter``, default ``health``), batch
-    ``[num_envs]``, wrapped with ``InitTracker`` (+ ``primer``, the policy's recurrent state). ``overrides`` replace
-    adapter options (e.g. ``episode_length``)."""
+    ``[num_envs]``, wrapped with ``InitTracker`` (+ ``primer``, the policy's recurrent state, + ``corrupt``, the
+    training corruptions: :func:`freamer_rl.health.evaluation.corruption_for`). ``overrides`` replace adapter options
+    (e.g. ``episode_length``)."""
     options = {**env_options(cfg), **overrides}
     base = env_registry.make_env(
         cfg.env.adapter, cfg.env.id, seed=seed, batch_size=num_envs or cfg.env.num_envs, **options
@@ -96,6 +99,7 @@ def make_health_env(
     transforms = [InitTracker()]
     if primer is not None:
         transforms.append(primer)
+    transforms.extend(corrupt)
     return TransformedEnv(base, Compose(*transforms))
 
 

@@ -24,7 +24,7 @@ from freamer_rl.config.checks import (
     size_range,
 )
 from freamer_rl.config.loader import VALIDATORS, config_from_dict, load_config
-from freamer_rl.config.sections import BASE_RANGES, LoggingConfig, RunConfig
+from freamer_rl.config.sections import BASE_RANGES, CorruptionConfig, LoggingConfig, RunConfig, check_corruption
 from freamer_rl.data import PROTOCOL_SUBJECTS
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.encoders import ENCODER_KINDS, MODALITIES
@@ -77,6 +77,11 @@ class HealthEnvConfig:
     reward_weights: list[float] = field(default_factory=lambda: [2.0, 1.0, 0.5])  # Eq. A11
     synthetic_duration_s: float = 1800.0
     data_seed: int = 0
+    # sensor corruption (freamer_rl.run.corruption, the same entries as every trainer's env.corrupt) of the keys the
+    # world model reads, imu (one site: imu[0:12] hand, imu[12:24] chest, imu[24:36] ankle) or hr_features:
+    # when train corrupts the collected data, eval the final evaluation, both both; freamer-rl health corruption /
+    # eval --corrupt corrupt a trained run's evaluation on their own
+    corrupt: list[CorruptionConfig] = field(default_factory=list)
 
 
 @dataclass
@@ -320,6 +325,7 @@ def validate_health_config(cfg: HealthConfig) -> None:
     """Number ranges (:data:`HEALTH_RANGES`) and cross-field checks (types and unknown keys are checked while
     building)."""
     check_numbers(cfg)
+    check_corruption(cfg.env.corrupt)  # the keys against the world model's inputs: evaluation.corruption_for
     if cfg.run.name and (problem := run_name_problem(cfg.run.name)):  # run dir = run.output_dir/run.name
         raise ConfigError(f"run.name: {problem}")
     check_logging(cfg.logging)

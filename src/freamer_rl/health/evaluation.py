@@ -28,7 +28,7 @@ from torchrl.envs.transforms import TensorDictPrimer
 from freamer_rl.config.sections import corruption_target
 from freamer_rl.errors import ConfigError
 from freamer_rl.health.agent import HealthAgent, load_agent, make_health_env
-from freamer_rl.run.corruption import ModalityCorruption, corruption_transforms
+from freamer_rl.run.corruption import ModalityCorruption, corruption_transforms, eval_entries
 from freamer_rl.world_model.metrics import imagination_horizon, reconstruction_mse, sample_windows
 
 __all__ = [
@@ -120,11 +120,12 @@ def rollout_metrics(traj: TensorDictBase) -> dict[str, float]:
     }
 
 
-def corruption_for(agent: HealthAgent, entries: list | None) -> list[ModalityCorruption]:
-    """The ``--corrupt`` entries (``env.corrupt``-style, :class:`~freamer_rl.config.sections.CorruptionConfig`) as
-    transforms of the evaluation env. Only the observations the agent reads (the world model's ``obs_dims``: imu,
-    hr_features) may be corrupted: a corruption of a key nobody reads would change nothing and read as robustness.
-    One site of the IMU is ``imu[0:12]`` (hand), ``imu[12:24]`` (chest), ``imu[24:36]`` (ankle)."""
+def corruption_for(agent: HealthAgent, entries: list | None, phase: str | None = None) -> list[ModalityCorruption]:
+    """The ``--corrupt`` / ``env.corrupt`` entries (:class:`~freamer_rl.config.sections.CorruptionConfig`) as
+    transforms of an env; ``phase`` ``"train"`` / ``"eval"`` keeps the entries whose ``when`` names it (None: all).
+    Only the observations the agent reads (the world model's ``obs_dims``: imu, hr_features) may be corrupted: a
+    corruption of a key nobody reads would change nothing and read as robustness. One site of the IMU is
+    ``imu[0:12]`` (hand), ``imu[12:24]`` (chest), ``imu[24:36]`` (ankle)."""
     entries = list(entries or [])
     reads = list(agent.world_model.obs_dims)
     for i, e in enumerate(entries):
@@ -134,7 +135,7 @@ def corruption_for(agent: HealthAgent, entries: list | None) -> list[ModalityCor
                 f"env.corrupt[{i}].key: the health agent reads {', '.join(reads)}, not {key!r} "
                 "(one IMU site: imu[0:12] hand, imu[12:24] chest, imu[24:36] ankle)"
             )
-    return corruption_transforms(entries, None)
+    return corruption_transforms(entries, phase)
 
 
 @torch.no_grad()
@@ -197,9 +198,11 @@ def world_model_metrics(agent: HealthAgent, traj: TensorDictBase, seed: int) -> 
 
 
 def evaluate_agent(agent: HealthAgent) -> dict[str, float]:
-    """The full evaluation protocol of the module docstring: policy metrics plus world-model metrics."""
+    """The full evaluation protocol of the module docstring: policy metrics plus world-model metrics, under the
+    recipe's evaluation corruptions (``env.corrupt`` entries with ``when`` eval or both; none by default)."""
     cfg = agent.cfg
-    metrics, traj = evaluate_policy(agent, seed=cfg.eval.seed, deterministic=cfg.eval.deterministic)
+    corrupt = eval_entries(cfg.env.corrupt, None)
+    metrics, traj = evaluate_policy(agent, seed=cfg.eval.seed, deterministic=cfg.eval.deterministic, corrupt=corrupt)
     metrics.update(world_model_metrics(agent, traj, cfg.eval.seed))
     return metrics
 
@@ -215,11 +218,13 @@ def evaluate_checkpoint(
 ) -> dict[str, Any]:
     """``freamer-rl eval`` of a health checkpoint: ``episodes`` real-env episodes (one per env, so ``num_envs`` is
     ``episodes``; a value given must agree) from env seed ``seed``, plus the world-model metrics on them;
-    ``corrupt``: ``--corrupt`` entries (:func:`corruption_for`), recorded in the result."""
+    ``corrupt``: ``--corrupt`` entries (:func:`corruption_for`), recorded in the result; None: the run's recipe's
+    evaluation corruptions (``env.corrupt`` with ``when`` eval or both), ``[]``: none."""
 
     if num_envs is not None and num_envs != episodes:
         raise ConfigError(f"--num-envs ({num_envs}): a health evaluation runs one episode per env; give --episodes")
     agent = load_agent(path)
+    corrupt = eval_entries(agent.cfg.env.corrupt, corrupt)
     metrics, traj = evaluate_policy(agent, num_envs=episodes, seed=seed, deterministic=deterministic, corrupt=corrupt)
     metrics.update(world_model_metrics(agent, traj, seed))
     return {

@@ -53,14 +53,22 @@ from torchrl.objectives import LossModule
 
 from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.sections import CollectorConfig, OptimConfig
-from freamer_rl.errors import ConfigError
+from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.health.agent import CHECKPOINT_FORMAT, build_agent, make_health_env, parameter_table, save_agent
 from freamer_rl.health.config import HealthConfig, health_config_to_dict
-from freamer_rl.health.evaluation import STORE_KEYS, episode_stats, eval_subjects, evaluate_agent, make_eval_env
+from freamer_rl.health.evaluation import (
+    STORE_KEYS,
+    corruption_for,
+    episode_stats,
+    eval_subjects,
+    evaluate_agent,
+    make_eval_env,
+)
 from freamer_rl.health.oracle import action_ranking
 from freamer_rl.health.reference import ACTION_NAMES, reference_summary
 from freamer_rl.run.checkpoint import latest_checkpoint, read_checkpoint
 from freamer_rl.run.collection import make_collector
+from freamer_rl.run.corruption import load_corruption_state
 from freamer_rl.run.lifecycle import RunLifecycle
 from freamer_rl.run.metrics import LogMeans, ProgressReporter, format_duration, format_rate
 from freamer_rl.run.optim import StepStats, optimizer_step, restore_optimizer
@@ -143,7 +151,7 @@ class HealthTrainer:
         )
         ckpt = self.life.open(resume, "delete it yourself (resume is the default: drop --no-resume to continue it)")
         try:
-            self._build(0 if ckpt is None else int(ckpt.get("frames", 0)))
+            self._build(0 if ckpt is None else int(ckpt.get("frames", 0)), ckpt)
             if ckpt is not None:
                 self._resume(ckpt)
             self.life.write_run_files()
@@ -160,8 +168,9 @@ class HealthTrainer:
         return self.life.resumed_from
 
     # -- construction -------------------------------------------------------------------------------------------------
-    def _build(self, frames: int) -> None:
-        """Everything in the order of the original single-function pipeline (same random streams when fresh)."""
+    def _build(self, frames: int, ckpt: dict[str, Any] | None = None) -> None:
+        """Everything in the order of the original single-function pipeline (same random streams when fresh); a
+        resume checkpoint ``ckpt`` restores the training corruptions' running statistics before the env is built."""
         cfg = self.cfg
         torch.set_num_threads(cfg.run.threads)
         torch.manual_seed(cfg.run.seed)
@@ -171,7 +180,20 @@ class HealthTrainer:
         self.policy = self.agent.policy(sample_latent=True, random_actions=True, explore_probs=cc.explore_probs)
         # a resumed run does not replay the episodes of the first attempt
         env_seed = cfg.run.seed if frames == 0 else cfg.run.seed * 10_000 + frames
-        env_fn = functools.partial(make_health_env, cfg, seed=env_seed, primer=self.policy.make_tensordict_primer())
+        # env.corrupt entries of the training phase, checked against the keys the world model reads
+        self.train_corruption = corruption_for(self.agent, cfg.env.corrupt, phase="train")
+        if ckpt is not None:
+            try:
+                load_corruption_state(self.train_corruption, ckpt.get("corruption"), str(self.run_dir / "checkpoints"))
+            except (KeyError, TypeError, ValueError) as err:
+                raise CheckpointError(f"checkpoint in {self.run_dir}: {err}") from err
+        env_fn = functools.partial(
+            make_health_env,
+            cfg,
+            seed=env_seed,
+            primer=self.policy.make_tensordict_primer(),
+            corrupt=self.train_corruption,
+        )
         self.collector = make_collector(
             _COLLECTOR, [env_fn], self.policy, frames_per_batch=cc.frames_per_iter, total_frames=-1, devices={}
         )
@@ -223,6 +245,8 @@ class HealthTrainer:
             "iteration": self.iteration,
             "prefilled": self.prefilled,
             "return_scale": None if self.algo.return_scale is None else self.algo.return_scale.state_dict(),
+            # the training corruptions' running std (the collector's env holds these very transforms)
+            "corruption": [t.stats_state() for t in self.train_corruption],
         }
 
     def _resume(self, ckpt: dict[str, Any]) -> None:
