@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from freamer_rl.data.anomaly_labels import write_anomaly_scenario
-from freamer_rl.health.anomaly_report import recording_observations
+from freamer_rl.health.agent import load_agent
+from freamer_rl.health.anomaly_report import recording_observations, recording_scores
 from freamer_rl.health.cli import main
 from freamer_rl.health.config import load_health_config
 from freamer_rl.run import env_registry
@@ -42,7 +43,7 @@ METRICS = (
     "auroc_point_adjusted",
     "auc_pr_point_adjusted",
     "recall_by_kind",
-    "kl_score",
+    "raw_score",
     "z_score",
 )
 
@@ -67,7 +68,10 @@ def run_and_scenario(tmp_path_factory):
     return run_dir, scen, dat, labels
 
 
-@pytest.mark.parametrize("extra", [[], ["--statistic", "ema", "--ema-halflife", "100", "--k-sigma", "1.5"]])
+@pytest.mark.parametrize(
+    "extra",
+    [[], ["--statistic", "ema", "--ema-halflife", "100", "--k-sigma", "1.5"], ["--score", "prediction"]],
+)
 def test_cli_scores_a_labelled_recording(run_and_scenario, tmp_path, capsys, extra):
     run_dir, scen, dat, labels = run_and_scenario
     argv = ["anomaly", str(run_dir), "--data", str(dat), "--labels", str(labels), "--out", str(tmp_path), *extra]
@@ -79,8 +83,9 @@ def test_cli_scores_a_labelled_recording(run_and_scenario, tmp_path, capsys, ext
         assert key in on_disk, key
     assert on_disk["events"] == 4 and set(on_disk["recall_by_kind"]) == {"hr_spike", "dropout", "drift", "arrhythmia"}
     assert on_disk["steps"] == 3 * 3600 // 5 and on_disk["hours"] == pytest.approx(3.0) and not on_disk["wraps"]
-    assert on_disk["statistic"] == ("ema" if extra else "running")
-    for part in ("kl_score", "z_score"):
+    assert on_disk["statistic"] == ("ema" if "ema" in extra else "running")
+    assert on_disk["score"] == ("prediction" if "prediction" in extra else "kl")
+    for part in ("raw_score", "z_score"):
         for adj in ("strict", "point_adjusted"):
             assert 0.0 <= on_disk[part][adj]["auroc"] <= 1.0
     assert 0.0 <= on_disk["recall"] <= 1.0 and on_disk["fa_per_hour"] >= 0.0
@@ -142,3 +147,25 @@ def test_observations_restart_the_reset_features():
     d_loader = np.diff(feat.hr_features[50:100, 14])
     np.testing.assert_allclose(np.diff(hr[1, :, 14]), d_loader, rtol=1e-4, atol=1e-6)
     np.testing.assert_array_equal(obs["imu"].reshape(-1, 36)[:120], feat.imu)
+
+
+def test_prediction_score_is_zero_where_the_observation_is_what_the_prior_expected(run_and_scenario):
+    """The prior at a filter episode's first step does not depend on that step's observation (the latent and action
+    are zeroed), so an observation equal to its decoded prior mean has prediction error 0 (up to float rounding),
+    and any other observation a positive one."""
+    agent = load_agent(run_and_scenario[0])
+    wm = agent.world_model.eval()
+    rng = np.random.default_rng(0)
+    obs = {k: rng.normal(size=(2, 3, d)).astype(np.float32) for k, d in wm.obs_dims.items()}
+    with torch.no_grad():
+        h, z = wm.rssm.initial_state((1,))
+        h0 = wm.rssm.transition(h, z, torch.zeros(1, wm.action_dim))  # what is_first makes of any previous state
+        prior_mean, _ = wm.rssm.prior(h0)
+        expected = wm.decode(torch.cat([h0, prior_mean], dim=-1))  # raw units
+    before = recording_scores(agent, obs)
+    for k in obs:
+        obs[k][0, 0] = expected[k][0].numpy()
+    after = recording_scores(agent, obs)
+    assert after["prediction"][0, 0] == pytest.approx(0.0, abs=1e-6)
+    assert before["prediction"][0, 0] > 1e-3 and after["prediction"][1, 0] == pytest.approx(before["prediction"][1, 0])
+    assert after["kl"].shape == after["prediction"].shape == (2, 3)

@@ -40,7 +40,20 @@ from freamer_rl.world_model.anomaly import (
 )
 from freamer_rl.world_model.functional import gaussian_kl
 
-__all__ = ["record_episode", "anomaly_report", "recording_observations", "recording_kl", "labelled_anomaly_report"]
+__all__ = [
+    "record_episode",
+    "anomaly_report",
+    "recording_observations",
+    "recording_kl",
+    "recording_scores",
+    "labelled_anomaly_report",
+    "SCORES",
+]
+
+#: per-step anomaly scores of a labelled recording (:func:`recording_scores`): the posterior's surprise (J.5) or the
+#: prior's one-step prediction error of the observation
+SCORES = ("kl", "prediction")
+_SCORE_NAMES = {"kl": "KL", "prediction": "prediction error"}
 
 #: The action index the filter is given for a recording (the subject followed the plan: Continue).
 _CONTINUE = DEFAULT_ACTION_NAMES.index("Continue")
@@ -257,16 +270,23 @@ def recording_observations(feat: Pamap2Features, segment_steps: int) -> tuple[di
 
 
 @torch.no_grad()
-def recording_kl(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False) -> np.ndarray:
-    """Per-step ``KL(q || p)`` float32 ``[S, L]`` of the trained filter over ``obs`` ``{key: [S, L, d]}``.
+def recording_scores(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False) -> dict[str, np.ndarray]:
+    """Per-step anomaly scores float32 ``[S, L]`` of the trained filter over ``obs`` ``{key: [S, L, d]}``.
 
     Each of the ``S`` rows is one filter episode (run side by side as a batch): it starts from the zero state with
     ``is_first`` at step 0, feeds posterior means forward and gives the world model the action Continue (the
-    subject followed the plan) -- :func:`record_episode`'s filter without the policy.
+    subject followed the plan) -- :func:`record_episode`'s filter without the policy. Scores:
+
+    * ``"kl"``: ``KL(q(z_t | h_t, o_t) || p(z_t | h_t))`` (J.5): how far the observation moved the latent.
+    * ``"prediction"``: the prior's one-step prediction error of the observation, ``mean_j (dec(h_t, mu_prior)_j -
+      y_j)^2`` over every feature ``j`` of every key, ``y`` the decoder's target (standardised with the world
+      model's ``recon_norm`` statistics): how badly the model expected what it saw *before* seeing it. Unlike the
+      KL it rises when a sensor freezes (forward-filled packets: an observation the model never produces).
     """
     wm = agent.world_model
     wm.eval()
     enc = wm.encoder
+    keys = list(wm.obs_dims)
     x = {k: torch.from_numpy(v) for k, v in obs.items()}
     s_count, length = next(iter(x.values())).shape[:2]
     h, z = wm.rssm.initial_state((s_count,))
@@ -275,24 +295,38 @@ def recording_kl(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar
     state = enc.initial_state((s_count,))
     first = torch.ones(s_count, dtype=torch.bool)
     kl = torch.empty(s_count, length)
+    pred_err = torch.empty(s_count, length)
+    width = sum(int(wm.obs_dims[k]) for k in keys)
     for t in tqdm(range(length), desc="filter", disable=not progress_bar, mininterval=2.0):
-        embed, state = enc.step({k: v[:, t] for k, v in x.items()}, state, first)
+        obs_t = {k: v[:, t] for k, v in x.items()}
+        embed, state = enc.step(obs_t, state, first)
         out = wm.rssm.obs_step(h, z, prev, embed, is_first=first, sample=False)
         h, z = out["h"], out["z"]
         kl[:, t] = gaussian_kl(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"])
+        expected = wm.decoder(torch.cat([out["h"], out["prior_mean"]], dim=-1))  # decoder targets, [S, d_k]
+        sq = sum((expected[k] - wm.recon_target(k, obs_t[k])).pow(2).sum(-1) for k in keys)
+        pred_err[:, t] = sq / width
         prev, first = cont, torch.zeros_like(first)
-    return kl.numpy()
+    return {"kl": kl.numpy(), "prediction": pred_err.numpy()}
 
 
-def filter_recording(agent: HealthAgent, feat: Pamap2Features, segment_steps: int) -> tuple[np.ndarray, np.ndarray]:
-    """``(kl float32 [N], include bool [N])`` of the trained filter over a windowed recording, in filter episodes of
-    ``segment_steps`` steps (0 = one); ``include`` is False at each episode's first (reset) step."""
+def recording_kl(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False) -> np.ndarray:
+    """Per-step ``KL(q || p)`` float32 ``[S, L]``: the ``"kl"`` score of :func:`recording_scores`."""
+    return recording_scores(agent, obs, progress_bar=progress_bar)["kl"]
+
+
+def filter_recording(
+    agent: HealthAgent, feat: Pamap2Features, segment_steps: int
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
+    """``({score: float32 [N]}, include bool [N])`` of the trained filter over a windowed recording
+    (:func:`recording_scores`), in filter episodes of ``segment_steps`` steps (0 = one); ``include`` is False at
+    each episode's first (reset) step."""
     obs, valid = recording_observations(feat, segment_steps)
-    kl = recording_kl(agent, obs)
+    scores = recording_scores(agent, obs)
     include = valid.copy()
     include[:, 0] = False  # a fresh filter is not a surprise
     n = len(feat)
-    return kl.reshape(-1)[:n], include.reshape(-1)[:n]
+    return {k: v.reshape(-1)[:n] for k, v in scores.items()}, include.reshape(-1)[:n]
 
 
 def labelled_anomaly_report(
@@ -308,27 +342,31 @@ def labelled_anomaly_report(
     warmup: int = 20,
     tolerance_s: float = 30.0,
     segment_steps: int | None = None,
+    score: str = "kl",
     plot: bool = True,
 ) -> dict[str, Any]:
-    """Filter a labelled recording with the trained world model, flag KL anomalies and score them.
+    """Filter a labelled recording with the trained world model, flag anomalies of one score and rate the flags.
 
     The recording is windowed at the run's ``env.rate_hz`` (:func:`~freamer_rl.data.pamap2_features`, the
     observation the env builds from a PAMAP2 subject), cut into filter episodes of ``segment_steps`` steps
     (default: the training episodes' ``env.episode_length``; 0 = one episode; :func:`recording_observations`) and
-    filtered (:func:`recording_kl`). The first step of each episode is neither flagged nor counted in the
-    statistics. Flags: ``KL > mean + k_sigma std`` with the ``running`` or ``ema`` statistic
+    filtered (:func:`recording_scores`: ``score`` ``"kl"``, the posterior's surprise, or ``"prediction"``, the
+    prior's one-step prediction error). The first step of each episode is neither flagged nor counted in the
+    statistics. Flags: ``score > mean + k_sigma std`` with the ``running`` or ``ema`` statistic
     (:func:`~freamer_rl.world_model.anomaly.anomaly_statistic`). Scores
     (:func:`~freamer_rl.health.anomaly_scoring.score_report`): event-level precision / recall / false alarms per
-    hour (a flag up to ``tolerance_s`` after an event's end still detects it), AUROC and AUC-PR of the KL and of
-    the detector's z-score, strict and point-adjusted.
+    hour (a flag up to ``tolerance_s`` after an event's end still detects it), AUROC and AUC-PR of the raw score
+    and of the detector's z-score, strict and point-adjusted.
 
     Writes into ``run_dir``: ``anomaly_timeline.png`` (with the labelled intervals), ``anomaly_scores.json``
-    (returned) and ``anomaly_scores.npz`` (``kl``, ``z``, ``flag``, ``threshold``, ``label``, ``valid``,
+    (returned) and ``anomaly_scores.npz`` (``score``, ``kl``, ``prediction``, ``z``, ``flag``, ``threshold``, ``label``, ``valid``,
     ``heart_rate``, ``time_h``, ``events``, ``kinds``).
 
     Raises:
         AnomalyLabelsError / Pamap2FormatError: one line naming the file (and line) at fault.
     """
+    if score not in SCORES:
+        raise ValueError(f"score: expected one of {', '.join(SCORES)}, got {score!r}")
     rec = load_recording(data, subject)  # the inputs are checked before the (slower) agent is loaded
     intervals = read_labels(labels, time_range=recording_time_range(rec))
     agent = checkpoint_or_model if isinstance(checkpoint_or_model, HealthAgent) else load_agent(checkpoint_or_model)
@@ -336,9 +374,9 @@ def labelled_anomaly_report(
     feat = pamap2_features(rec, rate_hz=cfg.env.rate_hz)
     step_s = 1.0 / feat.rate_hz
     seg = cfg.env.episode_length if segment_steps is None else int(segment_steps)
-    kl, include = filter_recording(agent, feat, seg)
+    scores, include = filter_recording(agent, feat, seg)
     stat = anomaly_statistic(
-        torch.from_numpy(kl),
+        torch.from_numpy(scores[score]),
         k_sigma=k_sigma,
         warmup=warmup,
         statistic=statistic,
@@ -346,7 +384,7 @@ def labelled_anomaly_report(
         include=torch.from_numpy(include),
     )
     arrays = {k: stat[k].numpy() for k in ("flags", "z", "threshold")}
-    arrays.update(kl=kl, valid=include, heart_rate=feat.heart_rate, kinds=np.asarray([a.kind for a in intervals]))
+    arrays.update(score=scores[score], **scores, valid=include, heart_rate=feat.heart_rate, kinds=np.asarray([a.kind for a in intervals]))
     arrays["events"] = interval_steps(
         [a.start_s for a in intervals], [a.end_s for a in intervals], feat.timestamp, step_s
     )
@@ -362,6 +400,7 @@ def labelled_anomaly_report(
         "recording_hours": rec.duration_s / 3600.0,
         "wraps": False,
         "segment_steps": seg if seg > 0 else len(feat),
+        "score": score,
         "statistic": statistic,
         "ema_halflife": (DEFAULT_EMA_HALFLIFE if halflife is None else float(halflife)) if statistic == "ema" else None,
         "k_sigma": k_sigma,
@@ -372,9 +411,9 @@ def labelled_anomaly_report(
 
 
 def _scores(a: dict[str, np.ndarray], step_s: float, tol: int) -> dict[str, Any]:
-    """The summary's metrics: event level and the KL's AUROC / AUC-PR at the top, the z-score's beside."""
+    """The summary's metrics: event level and the raw score's AUROC / AUC-PR at the top, the z-score's beside."""
     common = {"step_s": step_s, "tolerance": tol, "valid": a["valid"], "kinds": list(a["kinds"])}
-    on_kl = score_report(a["kl"], a["flags"], a["events"], **common)
+    on_kl = score_report(a["score"], a["flags"], a["events"], **common)
     on_z = score_report(a["z"], a["flags"], a["events"], **common)
     return {
         "tolerance_s": tol * step_s,
@@ -384,7 +423,7 @@ def _scores(a: dict[str, np.ndarray], step_s: float, tol: int) -> dict[str, Any]
         "auroc_point_adjusted": on_kl["point_adjusted"]["auroc"],
         "auc_pr_point_adjusted": on_kl["point_adjusted"]["auc_pr"],
         "recall_by_kind": on_kl["recall_by_kind"],
-        "kl_score": {"strict": on_kl["strict"], "point_adjusted": on_kl["point_adjusted"]},
+        "raw_score": {"strict": on_kl["strict"], "point_adjusted": on_kl["point_adjusted"]},
         "z_score": {"strict": on_z["strict"], "point_adjusted": on_z["point_adjusted"]},
         "anomalous_steps": on_kl["anomalous_steps"],
         "flagged_steps": on_kl["flagged_steps"],
@@ -406,13 +445,14 @@ def _write_labelled(run_dir: Path, summary: dict, a: dict[str, np.ndarray], plot
         summary["png"] = plot_anomaly_timeline(
             a["heart_rate"],
             np.full(n, _CONTINUE),
-            a["kl"],
+            a["score"],
             a["flags"],
             run_dir / "anomaly_timeline.png",
             time_hours=t,
             threshold=a["threshold"],
             intervals=[(t[s] - step_h, t[e - 1], k) for (s, e), k in zip(a["events"], a["kinds"])],
-            title=f"{summary['hours']:.3g}-hour labelled recording, {summary['encoder']} encoder: KL > mean + "
+            title=f"{summary['hours']:.3g}-hour labelled recording, {summary['encoder']} encoder: "
+            f"{_SCORE_NAMES[summary['score']]} > mean + "
             f"{summary['k_sigma']:g} std ({summary['statistic']}); recall {_fmt(summary['recall'])}, "
             f"{_fmt(summary['fa_per_hour'])} false alarms/h",
         )

@@ -2,7 +2,8 @@
 
     freamer-rl health anomaly RUN_DIR_OR_CHECKPOINT [--hours 48] [--out DIR] [--seed 0]
         [--statistic running|ema] [--ema-halflife STEPS] [--k-sigma 2]
-        [--data FILE_OR_FOLDER --labels LABELS.csv [--subject N] [--tolerance-s 30] [--segment-steps N]]
+        [--data FILE_OR_FOLDER --labels LABELS.csv [--subject N] [--tolerance-s 30] [--segment-steps N]
+         [--score kl|prediction]]
     freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
     freamer-rl health baselines recipes/health/health_foundation.yaml [--depth 4] [--horizon 12] [--json FILE] [key=value ...]
 
@@ -33,7 +34,7 @@ from pathlib import Path
 
 from freamer_rl.config.loader import load_config
 from freamer_rl.errors import ConfigError, FreamerError
-from freamer_rl.health.anomaly_report import anomaly_report, labelled_anomaly_report
+from freamer_rl.health.anomaly_report import SCORES, anomaly_report, labelled_anomaly_report
 from freamer_rl.health.config import HealthConfig
 from freamer_rl.health.reference import ceiling_table, format_ceiling_table
 from freamer_rl.trainers.health import train as train_health  # the registry entry (its STRUCTURAL)
@@ -66,6 +67,13 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
     p_an.add_argument("--tolerance-s", type=float, default=30.0, help="a flag this long after an event still counts")
     p_an.add_argument(
         "--segment-steps", type=int, default=None, help="filter episode length (default env.episode_length; 0: one)"
+    )
+    p_an.add_argument(
+        "--score",
+        choices=SCORES,
+        default="kl",
+        help="with --data: the per-step score flagged, kl (the posterior's surprise) or prediction (the prior's "
+        "one-step prediction error of the observation)",
     )
     p_b = sub.add_parser("baselines", help="the ceiling table: an oracle planner on the true simulator vs the rules")
     p_b.add_argument("recipe", help="health recipe: its env and eval sections set the episodes")
@@ -125,6 +133,7 @@ def _anomaly(args: argparse.Namespace) -> dict:
         k_sigma=args.k_sigma,
         tolerance_s=args.tolerance_s,
         segment_steps=args.segment_steps,
+        score=args.score,
     )
 
 
