@@ -49,15 +49,19 @@ def calibrated(rows: list[dict], max_fa: float) -> list[dict]:
     out = []
     for key in sorted({(r["run"], r["score"]) for r in rows}):
         cal = [r for r in rows if (r["run"], r["score"]) == key and r["scenario"] == "calibration"]
-        ok = sorted((r["k"] for r in cal if r["fa_per_hour"] is not None and r["fa_per_hour"] <= max_fa))
+        ok = sorted(r["k"] for r in cal if r["fa_per_hour"] is not None and r["fa_per_hour"] <= max_fa)
         k = ok[0] if ok else max(r["k"] for r in cal)
         test = next(r for r in rows if (r["run"], r["score"], r["k"]) == (*key, k) and r["scenario"] == "test")
         out.append({**test, "calibrated": bool(ok)})
     return out
 
 
+def _fmt(v: float | None) -> str:
+    return "n/a" if v is None else f"{v:.2f}"
+
+
 def markdown(best: list[dict], max_fa: float) -> str:
-    fmt = lambda v: "n/a" if v is None else f"{v:.2f}"  # noqa: E731
+    fmt = _fmt
     lines = [
         f"Threshold: the smallest k with <= {max_fa:g} false alarm(s) per hour on the calibration scenario "
         "(* none reached it: the largest k). Scored on the test scenario.",

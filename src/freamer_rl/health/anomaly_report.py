@@ -270,7 +270,9 @@ def recording_observations(feat: Pamap2Features, segment_steps: int) -> tuple[di
 
 
 @torch.no_grad()
-def recording_scores(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False) -> dict[str, np.ndarray]:
+def recording_scores(
+    agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False
+) -> dict[str, np.ndarray]:
     """Per-step anomaly scores float32 ``[S, L]`` of the trained filter over ``obs`` ``{key: [S, L, d]}``.
 
     Each of the ``S`` rows is one filter episode (run side by side as a batch): it starts from the zero state with
@@ -384,7 +386,13 @@ def labelled_anomaly_report(
         include=torch.from_numpy(include),
     )
     arrays = {k: stat[k].numpy() for k in ("flags", "z", "threshold")}
-    arrays.update(score=scores[score], **scores, valid=include, heart_rate=feat.heart_rate, kinds=np.asarray([a.kind for a in intervals]))
+    arrays.update(
+        score=scores[score],
+        **scores,
+        valid=include,
+        heart_rate=feat.heart_rate,
+        kinds=np.asarray([a.kind for a in intervals]),
+    )
     arrays["events"] = interval_steps(
         [a.start_s for a in intervals], [a.end_s for a in intervals], feat.timestamp, step_s
     )
