@@ -32,6 +32,8 @@ from freamer_rl.world_model.heads import REWARD_HEADS
 from freamer_rl.world_model.imagination import RETURN_NORMS
 
 __all__ = [
+    "ACTION_NAMES",
+    "REFERENCE_POLICIES",
     "HealthEnvConfig",
     "HealthEncoderConfig",
     "HealthWorldModelConfig",
@@ -63,6 +65,12 @@ VARIED_ENV_ID = "pamap2-health-varied"
 # ----------------------------------------------------------------------------------------------------------------------
 # schema
 # ----------------------------------------------------------------------------------------------------------------------
+#: action names of the health env, in index order (``freamer_rl_envs.health.HEALTH_ACTIONS``; the library does not
+#: import envs); the reference policies of :mod:`freamer_rl.health.reference` that ``eval.references`` may name
+ACTION_NAMES: tuple[str, ...] = ("continue", "rest", "increase", "change", "alert")
+REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold", "oracle")
+
+
 @dataclass
 class HealthEnvConfig:
     """Real health env (``freamer_rl_envs.health.make_health_env`` through the ``health`` adapter entry point)."""
@@ -384,9 +392,6 @@ def validate_health_config(cfg: HealthConfig) -> None:
 def check_options(cfg: HealthConfig) -> None:
     """The world-model / imagination options of issue 22 part 2: choices and the pairs that need each other; the
     reference policies of ``eval.references``."""
-    # imported here: reference -> evaluation -> agent imports this module
-    from freamer_rl.health.reference import REFERENCE_POLICIES
-
     refs = cfg.eval.references
     if not isinstance(refs, list) or any(r not in REFERENCE_POLICIES for r in refs) or len(set(refs)) != len(refs):
         raise ConfigError(

@@ -32,6 +32,7 @@ import torch
 from tensordict import TensorDictBase
 from tensordict.nn import TensorDictModuleBase
 
+from freamer_rl.health.config import ACTION_NAMES, REFERENCE_POLICIES
 from freamer_rl.health.evaluation import make_eval_env, rollout_metrics
 from freamer_rl.health.oracle import ORACLE_DEFAULTS, OraclePlanner
 
@@ -54,9 +55,6 @@ __all__ = [
     "format_ceiling_table",
 ]
 
-#: action names of the health env, in index order (``freamer_rl_envs.health.HEALTH_ACTIONS``; the library does not import envs)
-ACTION_NAMES: tuple[str, ...] = ("continue", "rest", "increase", "change", "alert")
-REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold", "oracle")
 #: the rows of the ceiling table (issue 22), the oracle first: every other row is read as a fraction of it
 CEILING_POLICIES: tuple[str, ...] = ("oracle", "hr_threshold", "continue", "rest", "random")
 
