@@ -61,7 +61,6 @@ def _fmt(v: float | None) -> str:
 
 
 def markdown(best: list[dict], max_fa: float) -> str:
-    fmt = _fmt
     lines = [
         f"Threshold: the smallest k with <= {max_fa:g} false alarm(s) per hour on the calibration scenario "
         "(* none reached it: the largest k). Scored on the test scenario.",
@@ -70,11 +69,11 @@ def markdown(best: list[dict], max_fa: float) -> str:
         "|---|---|---|---:|---:|---:|---|---:|---:|---:|",
     ]
     for r in best:
-        kinds = ", ".join(f"{k} {fmt(v)}" for k, v in r["recall_by_kind"].items())
+        kinds = ", ".join(f"{k} {_fmt(v)}" for k, v in r["recall_by_kind"].items())
         lines.append(
             f"| {Path(r['run']).name} | {r['encoder']} | {r['score']} | {r['k']:g}{'' if r['calibrated'] else '*'} | "
-            f"{fmt(r['recall'])} | {fmt(r['fa_per_hour'])} | {kinds} | {fmt(r['auroc'])} | {fmt(r['auc_pr'])} | "
-            f"{fmt(r['auroc_point_adjusted'])} |"
+            f"{_fmt(r['recall'])} | {_fmt(r['fa_per_hour'])} | {kinds} | {_fmt(r['auroc'])} | {_fmt(r['auc_pr'])} | "
+            f"{_fmt(r['auroc_point_adjusted'])} |"
         )
     return "\n".join(lines) + "\n"
 

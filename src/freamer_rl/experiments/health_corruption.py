@@ -40,7 +40,7 @@ import yaml
 
 from freamer_rl.config.sections import CorruptionConfig, check_corruption_entry, corruption_target
 from freamer_rl.errors import ConfigError, FreamerError
-from freamer_rl.experiments.stats import iqm, iqm_ci
+from freamer_rl.experiments.stats import difference_ci, iqm_ci
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import write_rows_csv
 from freamer_rl.trainers.registry import evaluate_any
@@ -137,23 +137,6 @@ def encoder_table(rows: list[dict]) -> list[dict[str, Any]]:
             entry["kl_mean"] = float(np.mean(kl)) if kl else math.nan
             out.append(entry)
     return out
-
-
-def difference_ci(
-    a: Sequence[float], b: Sequence[float], *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
-) -> tuple[float, float, float]:
-    """``(IQM(a) - IQM(b), low, high)``: the percentile interval over ``reps`` replicates, each resampling the runs
-    of ``a`` and of ``b`` with replacement on their own (the arms are independent runs)."""
-    x, y = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
-    if not x.size or not y.size:
-        return math.nan, math.nan, math.nan
-    rng = np.random.default_rng(seed)
-    values = np.array(
-        [iqm(x[rng.integers(0, x.size, x.size)]) - iqm(y[rng.integers(0, y.size, y.size)]) for _ in range(reps)]
-    )
-    tail = 100 * (1 - confidence) / 2
-    low, high = np.percentile(values, [tail, 100 - tail])
-    return iqm(x) - iqm(y), float(low), float(high)
 
 
 def difference_table(rows: list[dict], a: str, b: str) -> list[dict[str, Any]]:

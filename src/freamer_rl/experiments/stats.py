@@ -24,6 +24,7 @@ __all__ = [
     "iqm_ci",
     "task_mean_ci",
     "mean_ratio_ci",
+    "difference_ci",
     "probability_of_improvement",
 ]
 
@@ -130,6 +131,19 @@ def probability_of_improvement(
     return point, float(low), float(high)
 
 
+def _two_arm_replicates(x: np.ndarray, y: np.ndarray, stat, reps: int, seed: int) -> np.ndarray:
+    """``reps`` bootstrap replicates of ``stat(x*, y*)``, each arm's runs resampled with replacement on their own
+    (independent arms: different seeds)."""
+    rng = np.random.default_rng(seed)
+    return np.array([stat(x[rng.integers(0, x.size, x.size)], y[rng.integers(0, y.size, y.size)]) for _ in range(reps)])
+
+
+def _percentile_interval(values: np.ndarray, confidence: float) -> tuple[float, float]:
+    tail = 100 * (1 - confidence) / 2
+    low, high = np.percentile(values, [tail, 100 - tail])
+    return float(low), float(high)
+
+
 def mean_ratio_ci(
     a: Sequence[float], b: Sequence[float], *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
 ) -> tuple[float, float, float]:
@@ -139,15 +153,22 @@ def mean_ratio_ci(
     x, y = np.asarray(a, dtype=float).reshape(-1), np.asarray(b, dtype=float).reshape(-1)
     if not x.size or not y.size:
         raise ValueError(f"mean_ratio_ci: both arms need a value (got {x.size} and {y.size})")
-    rng = np.random.default_rng(seed)
     with np.errstate(divide="ignore", invalid="ignore"):
         point = float(x.mean() / y.mean())
-        values = np.array(
-            [x[rng.integers(0, x.size, x.size)].mean() / y[rng.integers(0, y.size, y.size)].mean() for _ in range(reps)]
-        )
+        values = _two_arm_replicates(x, y, lambda u, v: u.mean() / v.mean(), reps, seed)
     values = values[np.isfinite(values)]
     if not values.size:
         return point, float("nan"), float("nan")
-    tail = 100 * (1 - confidence) / 2
-    low, high = np.percentile(values, [tail, 100 - tail])
-    return point, float(low), float(high)
+    return (point, *_percentile_interval(values, confidence))
+
+
+def difference_ci(
+    a: Sequence[float], b: Sequence[float], *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
+) -> tuple[float, float, float]:
+    """``(IQM(a) - IQM(b), low, high)``: the percentile interval over ``reps`` replicates, each resampling the runs
+    of ``a`` and of ``b`` on their own (the arms are independent runs); NaNs when an arm has no value."""
+    x, y = np.asarray(a, dtype=float).reshape(-1), np.asarray(b, dtype=float).reshape(-1)
+    if not x.size or not y.size:
+        return math.nan, math.nan, math.nan
+    values = _two_arm_replicates(x, y, lambda u, v: iqm(u) - iqm(v), reps, seed)
+    return (iqm(x) - iqm(y), *_percentile_interval(values, confidence))
