@@ -257,3 +257,26 @@ def test_excluded_steps_are_neither_flagged_nor_counted(statistic):
     assert torch.equal(out["flags"][ok], z[ok] > 2.0)
     flags, _ = detect_anomalies(kl, warmup=20, statistic=statistic, halflife=hl, include=include)
     assert torch.equal(out["flags"], flags)
+
+
+@pytest.mark.parametrize("shape", [(), (3,)])
+def test_running_statistic_in_closed_form_matches_the_streaming_detector(shape):
+    """anomaly_statistic computes the running statistic from prefix sums; the streaming KLAnomalyDetector, fed one
+    step at a time, gives the same mean, std and flags."""
+    g = torch.Generator().manual_seed(0)
+    kl = torch.rand(*shape, 300, generator=g).exp()
+    kl[..., 150] += 10.0
+    include = torch.rand(*shape, 300, generator=g) > 0.1
+    out = anomaly_statistic(kl, k_sigma=2.5, warmup=10, include=include)
+    det = KLAnomalyDetector(k_sigma=2.5, warmup=10)
+    nan = torch.full(shape, float("nan"))
+    for t in range(300):
+        ready = det.count >= 10 if det.count is not None else torch.zeros(shape, dtype=torch.bool)
+        mean = torch.where(ready, det.mean, nan) if det.count is not None else nan
+        torch.testing.assert_close(out["mean"][..., t], mean, equal_nan=True, rtol=1e-5, atol=1e-6)
+        if det.count is not None:
+            std = torch.where(ready, det.std.clamp(min=1e-4), nan)
+            torch.testing.assert_close(out["std"][..., t], std, equal_nan=True, rtol=1e-4, atol=1e-6)
+        flags = det.update(kl[..., t], include[..., t])
+        assert torch.equal(out["flags"][..., t], flags), t
+    assert out["flags"][..., 150].all()

@@ -70,7 +70,13 @@ def run_and_scenario(tmp_path_factory):
 
 @pytest.mark.parametrize(
     "extra",
-    [[], ["--statistic", "ema", "--ema-halflife", "100", "--k-sigma", "1.5"], ["--score", "prediction"]],
+    [
+        [],
+        ["--statistic", "ema", "--ema-halflife", "100", "--k-sigma", "1.5"],
+        ["--score", "prediction"],
+        ["--score", "channel", "--stale-steps", "2"],
+        ["--score", "hr_lag", "--stale-steps", "2", "--k-sigma", "8"],
+    ],
 )
 def test_cli_scores_a_labelled_recording(run_and_scenario, tmp_path, capsys, extra):
     run_dir, scen, dat, labels = run_and_scenario
@@ -84,7 +90,7 @@ def test_cli_scores_a_labelled_recording(run_and_scenario, tmp_path, capsys, ext
     assert on_disk["events"] == 4 and set(on_disk["recall_by_kind"]) == {"hr_spike", "dropout", "drift", "arrhythmia"}
     assert on_disk["steps"] == 3 * 3600 // 5 and on_disk["hours"] == pytest.approx(3.0) and not on_disk["wraps"]
     assert on_disk["statistic"] == ("ema" if "ema" in extra else "running")
-    assert on_disk["score"] == ("prediction" if "prediction" in extra else "kl")
+    assert on_disk["score"] == next((s for s in ("prediction", "channel", "hr_lag") if s in extra), "kl")
     for part in ("raw_score", "z_score"):
         for adj in ("strict", "point_adjusted"):
             assert 0.0 <= on_disk[part][adj]["auroc"] <= 1.0
@@ -94,6 +100,19 @@ def test_cli_scores_a_labelled_recording(run_and_scenario, tmp_path, capsys, ext
     assert arrays["flag"].sum() == on_disk["flagged_steps"] and arrays["label"].sum() == on_disk["anomalous_steps"]
     # the first step of every 48-step filter episode is never flagged
     assert not arrays["flag"][::48].any() and not arrays["valid"][::48].any()
+    if "--stale-steps" in extra:
+        # the 120 s dropout freezes the forward-filled observation for ~24 steps: all but its first 2 are stale,
+        # every stale step is flagged, and only the dropout is stale
+        ((start, end),) = arrays["events"][arrays["kinds"] == "dropout"]
+        stale = arrays["stale"]
+        assert on_disk["stale_flagged_steps"] == stale.sum() > 0 and arrays["flag"][stale].all()
+        assert stale[start + 2 : end - 1].all() and stale.sum() <= end - start  # the last step may end after it
+        assert on_disk["recall_by_kind"]["dropout"] == 1.0
+    else:
+        assert on_disk["stale_steps"] == 0 and on_disk["stale_flagged_steps"] == 0
+    if "hr_lag" in extra:
+        # the heart-rate lag predictor with the frozen-sensor check finds all four events and flags nothing else
+        assert on_disk["recall"] == 1.0 and on_disk["false_alarms"] == 0, on_disk
     # the folder holding the one subject file works as --data too
     assert main([*argv[:3], str(scen), *argv[4:]]) == 0
     assert json.loads(capsys.readouterr().out)["recall"] == on_disk["recall"]
@@ -169,3 +188,32 @@ def test_prediction_score_is_zero_where_the_observation_is_what_the_prior_expect
     assert after["prediction"][0, 0] == pytest.approx(0.0, abs=1e-6)
     assert before["prediction"][0, 0] > 1e-3 and after["prediction"][1, 0] == pytest.approx(before["prediction"][1, 0])
     assert after["kl"].shape == after["prediction"].shape == (2, 3)
+
+
+def test_anomaly_sweep_calibrates_on_one_scenario_and_scores_another(run_and_scenario, tmp_path):
+    """benchmarks/anomaly_sweep.py on the tiny run and two 3-hour scenarios: every score (and its frozen-sensor
+    variant) gets the smallest k whose false alarms on the calibration scenario are within the limit, scored on the
+    test scenario; the heart-rate lag predictor with the frozen-sensor check finds every event there."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[2] / "benchmarks" / "anomaly_sweep.py"
+    spec = importlib.util.spec_from_file_location("anomaly_sweep", path)
+    sweep = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sweep)
+    out = tmp_path / "sweep"
+    argv = [str(run_and_scenario[0]), "--out", str(out), "--hours", "3", "--k", "4", "8", "--stale-steps", "2"]
+    sweep.main(argv)
+    result = json.loads((out / "anomaly_sweep.json").read_text())
+    labels = {"kl", "prediction", "channel", "hr_lag"}
+    assert {r["score"] for r in result["calibrated"]} == labels | {f"{s}+stale" for s in labels}
+    for best in result["calibrated"]:
+        cal = {
+            r["k"]: r["fa_per_hour"]
+            for r in result["rows"]
+            if r["score"] == best["score"] and r["scenario"] == "calibration"
+        }
+        ok = [k for k, fa in cal.items() if fa <= 1.0]
+        assert best["k"] == (min(ok) if ok else max(cal)) and best["scenario"] == "test"
+    hr_lag = next(r for r in result["calibrated"] if r["score"] == "hr_lag+stale")
+    assert hr_lag["recall"] == 1.0, hr_lag
+    assert "| hr_lag+stale |" in (out / "anomaly_sweep.md").read_text()

@@ -16,6 +16,7 @@ the whole scenario and filters it once from its first window: it never wraps.
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -29,6 +30,7 @@ from freamer_rl.data.anomaly_labels import read_labels, recording_time_range
 from freamer_rl.errors import FreamerError
 from freamer_rl.health.agent import HealthAgent, env_options, load_agent, logits_net
 from freamer_rl.health.anomaly_scoring import interval_steps, score_report
+from freamer_rl.health.anomaly_signals import channel_zscore, heart_rate_zscore, stale_mask, with_stale
 from freamer_rl.run import env_registry
 from freamer_rl.world_model.anomaly import (
     DANGER_HR,
@@ -47,13 +49,23 @@ __all__ = [
     "recording_kl",
     "recording_scores",
     "labelled_anomaly_report",
+    "FilteredRecording",
+    "filter_labelled",
+    "score_filtered",
     "SCORES",
 ]
 
-#: per-step anomaly scores of a labelled recording (:func:`recording_scores`): the posterior's surprise (J.5) or the
-#: prior's one-step prediction error of the observation
-SCORES = ("kl", "prediction")
-_SCORE_NAMES = {"kl": "KL", "prediction": "prediction error"}
+#: per-step anomaly scores of a labelled recording (:func:`filter_recording`): the posterior's surprise (J.5), the
+#: prior's one-step prediction error of the observation, its largest per-feature residual in that feature's own
+#: running RMS (:func:`~freamer_rl.health.anomaly_signals.channel_zscore`), or -- no world model -- the residual of a
+#: heart-rate lag predictor (:func:`~freamer_rl.health.anomaly_signals.heart_rate_zscore`)
+SCORES = ("kl", "prediction", "channel", "hr_lag")
+_SCORE_NAMES = {
+    "kl": "KL",
+    "prediction": "prediction error",
+    "channel": "largest channel residual",
+    "hr_lag": "heart-rate lag predictor residual",
+}
 
 #: The action index the filter is given for a recording (the subject followed the plan: Continue).
 _CONTINUE = DEFAULT_ACTION_NAMES.index("Continue")
@@ -284,6 +296,9 @@ def recording_scores(
       y_j)^2`` over every feature ``j`` of every key, ``y`` the decoder's target (standardised with the world
       model's ``recon_norm`` statistics): how badly the model expected what it saw *before* seeing it. Unlike the
       KL it rises when a sensor freezes (forward-filled packets: an observation the model never produces).
+    * ``"residual"`` (float32 ``[S, L, D]``): the per-feature residuals ``dec(h_t, mu_prior) - y`` behind
+      ``"prediction"``, features in the order of the world model's keys (what the ``"channel"`` score of
+      :func:`filter_recording` normalises).
     """
     wm = agent.world_model
     wm.eval()
@@ -297,8 +312,8 @@ def recording_scores(
     state = enc.initial_state((s_count,))
     first = torch.ones(s_count, dtype=torch.bool)
     kl = torch.empty(s_count, length)
-    pred_err = torch.empty(s_count, length)
     width = sum(int(wm.obs_dims[k]) for k in keys)
+    residual = torch.empty(s_count, length, width)
     for t in tqdm(range(length), desc="filter", disable=not progress_bar, mininterval=2.0):
         obs_t = {k: v[:, t] for k, v in x.items()}
         embed, state = enc.step(obs_t, state, first)
@@ -306,10 +321,9 @@ def recording_scores(
         h, z = out["h"], out["z"]
         kl[:, t] = gaussian_kl(out["post_mean"], out["post_std"], out["prior_mean"], out["prior_std"])
         expected = wm.decoder(torch.cat([out["h"], out["prior_mean"]], dim=-1))  # decoder targets, [S, d_k]
-        sq = sum((expected[k] - wm.recon_target(k, obs_t[k])).pow(2).sum(-1) for k in keys)
-        pred_err[:, t] = sq / width
+        residual[:, t] = torch.cat([expected[k] - wm.recon_target(k, obs_t[k]) for k in keys], dim=-1)
         prev, first = cont, torch.zeros_like(first)
-    return {"kl": kl.numpy(), "prediction": pred_err.numpy()}
+    return {"kl": kl.numpy(), "prediction": residual.pow(2).mean(-1).numpy(), "residual": residual.numpy()}
 
 
 def recording_kl(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar: bool = False) -> np.ndarray:
@@ -318,17 +332,23 @@ def recording_kl(agent: HealthAgent, obs: dict[str, np.ndarray], *, progress_bar
 
 
 def filter_recording(
-    agent: HealthAgent, feat: Pamap2Features, segment_steps: int
+    agent: HealthAgent, feat: Pamap2Features, segment_steps: int, *, warmup: int = 20
 ) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """``({score: float32 [N]}, include bool [N])`` of the trained filter over a windowed recording
-    (:func:`recording_scores`), in filter episodes of ``segment_steps`` steps (0 = one); ``include`` is False at
-    each episode's first (reset) step."""
+    """``({score: [N]}, include bool [N])`` of the trained filter over a windowed recording, for every score of
+    :data:`SCORES` (:func:`recording_scores`, ``"channel"`` from its residuals with ``warmup``, and ``"hr_lag"``
+    from the recording alone), in filter
+    episodes of ``segment_steps`` steps (0 = one); ``include`` is False at each episode's first (reset) step."""
     obs, valid = recording_observations(feat, segment_steps)
     scores = recording_scores(agent, obs)
     include = valid.copy()
     include[:, 0] = False  # a fresh filter is not a surprise
     n = len(feat)
-    return {k: v.reshape(-1)[:n] for k, v in scores.items()}, include.reshape(-1)[:n]
+    include = include.reshape(-1)[:n]
+    residual = scores.pop("residual")
+    out = {k: v.reshape(-1)[:n] for k, v in scores.items()}
+    out["channel"] = channel_zscore(residual.reshape(-1, residual.shape[-1])[:n], include, warmup=warmup)
+    out["hr_lag"] = heart_rate_zscore(feat.heart_rate, feat.met, include, warmup=warmup)
+    return out, include
 
 
 def labelled_anomaly_report(
@@ -345,6 +365,7 @@ def labelled_anomaly_report(
     tolerance_s: float = 30.0,
     segment_steps: int | None = None,
     score: str = "kl",
+    stale_steps: int = 0,
     plot: bool = True,
 ) -> dict[str, Any]:
     """Filter a labelled recording with the trained world model, flag anomalies of one score and rate the flags.
@@ -353,9 +374,13 @@ def labelled_anomaly_report(
     observation the env builds from a PAMAP2 subject), cut into filter episodes of ``segment_steps`` steps
     (default: the training episodes' ``env.episode_length``; 0 = one episode; :func:`recording_observations`) and
     filtered (:func:`recording_scores`: ``score`` ``"kl"``, the posterior's surprise, or ``"prediction"``, the
-    prior's one-step prediction error). The first step of each episode is neither flagged nor counted in the
-    statistics. Flags: ``score > mean + k_sigma std`` with the ``running`` or ``ema`` statistic
-    (:func:`~freamer_rl.world_model.anomaly.anomaly_statistic`). Scores
+    prior's one-step prediction error, or ``"channel"``, its largest per-feature residual in units of that feature's
+    running RMS). The first step of each episode is neither flagged nor counted in the statistics. Flags: ``score >
+    mean + k_sigma std`` with the ``running`` or ``ema`` statistic
+    (:func:`~freamer_rl.world_model.anomaly.anomaly_statistic`); with ``stale_steps > 0`` also every step at which
+    the IMU features have not changed for ``stale_steps`` steps (a frozen sensor:
+    :func:`~freamer_rl.health.anomaly_signals.stale_mask`; those steps rank above all others in the threshold-free
+    metrics). Scores
     (:func:`~freamer_rl.health.anomaly_scoring.score_report`): event-level precision / recall / false alarms per
     hour (a flag up to ``tolerance_s`` after an event's end still detects it), AUROC and AUC-PR of the raw score
     and of the detector's z-score, strict and point-adjusted.
@@ -367,27 +392,99 @@ def labelled_anomaly_report(
     Raises:
         AnomalyLabelsError / Pamap2FormatError: one line naming the file (and line) at fault.
     """
-    if score not in SCORES:
-        raise ValueError(f"score: expected one of {', '.join(SCORES)}, got {score!r}")
-    rec = load_recording(data, subject)  # the inputs are checked before the (slower) agent is loaded
+    filtered = filter_labelled(
+        checkpoint_or_model, data, labels, subject=subject, segment_steps=segment_steps, warmup=warmup
+    )
+    return score_filtered(
+        filtered,
+        run_dir,
+        statistic=statistic,
+        halflife=halflife,
+        k_sigma=k_sigma,
+        tolerance_s=tolerance_s,
+        score=score,
+        stale_steps=stale_steps,
+        plot=plot,
+    )
+
+
+@dataclass
+class FilteredRecording:
+    """A labelled recording windowed at the run's step rate and filtered once (every score of :data:`SCORES`):
+    what :func:`score_filtered` flags and scores, as often as a threshold sweep needs."""
+
+    data: str
+    labels: str
+    subject: int
+    encoder: str
+    recording_hours: float
+    feat: Pamap2Features
+    intervals: list
+    scores: dict[str, np.ndarray]  # {score: [N]}
+    include: np.ndarray  # bool [N]: not a filter episode's first step
+    segment_steps: int
+    warmup: int
+
+
+def filter_labelled(
+    checkpoint_or_model: str | Path | HealthAgent,
+    data: str | Path,
+    labels: str | Path,
+    *,
+    subject: int | None = None,
+    segment_steps: int | None = None,
+    warmup: int = 20,
+) -> FilteredRecording:
+    """Load a labelled recording (checked before the slower agent is loaded), window it and filter it
+    (:func:`filter_recording`; ``segment_steps`` default: the run's ``env.episode_length``)."""
+    rec = load_recording(data, subject)
     intervals = read_labels(labels, time_range=recording_time_range(rec))
     agent = checkpoint_or_model if isinstance(checkpoint_or_model, HealthAgent) else load_agent(checkpoint_or_model)
     cfg = agent.cfg
     feat = pamap2_features(rec, rate_hz=cfg.env.rate_hz)
-    step_s = 1.0 / feat.rate_hz
     seg = cfg.env.episode_length if segment_steps is None else int(segment_steps)
-    scores, include = filter_recording(agent, feat, seg)
+    scores, include = filter_recording(agent, feat, seg, warmup=warmup)
+    return FilteredRecording(
+        str(data), str(labels), rec.subject, cfg.encoder.kind, rec.duration_s / 3600.0, feat, intervals, scores,
+        include, seg if seg > 0 else len(feat), warmup,
+    )  # fmt: skip
+
+
+def score_filtered(
+    filtered: FilteredRecording,
+    run_dir: str | Path,
+    *,
+    statistic: str = "running",
+    halflife: float | None = None,
+    k_sigma: float = 2.0,
+    tolerance_s: float = 30.0,
+    score: str = "kl",
+    stale_steps: int = 0,
+    plot: bool = True,
+) -> dict[str, Any]:
+    """Flag one score of a :class:`FilteredRecording` and rate the flags (:func:`labelled_anomaly_report`)."""
+    if score not in SCORES:
+        raise ValueError(f"score: expected one of {', '.join(SCORES)}, got {score!r}")
+    if int(stale_steps) != stale_steps or stale_steps < 0:
+        raise ValueError(f"stale_steps: expected an integer >= 0 (0: off), got {stale_steps!r}")
+    feat, intervals, scores = filtered.feat, filtered.intervals, filtered.scores
+    step_s = 1.0 / feat.rate_hz
+    include = filtered.include & np.isfinite(scores[score])  # the channel score's own warm-up
     stat = anomaly_statistic(
-        torch.from_numpy(scores[score]),
+        torch.from_numpy(scores[score]).float(),
         k_sigma=k_sigma,
-        warmup=warmup,
+        warmup=filtered.warmup,
         statistic=statistic,
         halflife=halflife,
         include=torch.from_numpy(include),
     )
     arrays = {k: stat[k].numpy() for k in ("flags", "z", "threshold")}
+    stale = stale_mask(feat.imu, int(stale_steps)) & include
+    raw, arrays["flags"] = with_stale(scores[score], arrays["flags"], stale)
+    arrays["z"], _ = with_stale(arrays["z"], arrays["flags"], stale)
     arrays.update(
-        score=scores[score],
+        score=raw,
+        stale=stale,
         **scores,
         valid=include,
         heart_rate=feat.heart_rate,
@@ -398,21 +495,23 @@ def labelled_anomaly_report(
     )
     arrays["time_h"] = (feat.timestamp - feat.timestamp[0] + step_s) / 3600.0
     summary = {
-        "data": str(data),
-        "labels": str(labels),
-        "subject": rec.subject,
-        "encoder": cfg.encoder.kind,
+        "data": filtered.data,
+        "labels": filtered.labels,
+        "subject": filtered.subject,
+        "encoder": filtered.encoder,
         "rate_hz": feat.rate_hz,
         "steps": len(feat),
         "hours": len(feat) * step_s / 3600.0,
-        "recording_hours": rec.duration_s / 3600.0,
+        "recording_hours": filtered.recording_hours,
         "wraps": False,
-        "segment_steps": seg if seg > 0 else len(feat),
+        "segment_steps": filtered.segment_steps,
         "score": score,
+        "stale_steps": int(stale_steps),
+        "stale_flagged_steps": int(stale.sum()),
         "statistic": statistic,
         "ema_halflife": (DEFAULT_EMA_HALFLIFE if halflife is None else float(halflife)) if statistic == "ema" else None,
         "k_sigma": k_sigma,
-        "warmup": warmup,
+        "warmup": filtered.warmup,
         **_scores(arrays, step_s, int(round(tolerance_s / step_s))),
     }
     return _write_labelled(Path(run_dir), summary, arrays, plot)

@@ -3,7 +3,7 @@
     freamer-rl health anomaly RUN_DIR_OR_CHECKPOINT [--hours 48] [--out DIR] [--seed 0]
         [--statistic running|ema] [--ema-halflife STEPS] [--k-sigma 2]
         [--data FILE_OR_FOLDER --labels LABELS.csv [--subject N] [--tolerance-s 30] [--segment-steps N]
-         [--score kl|prediction]]
+         [--score kl|prediction|channel|hr_lag] [--stale-steps N]]
     freamer-rl health train recipes/health/health_foundation.yaml [--run-dir DIR] [--no-resume] [key=value ...]
     freamer-rl health baselines recipes/health/health_foundation.yaml [--depth 4] [--horizon 12] [--json FILE] [key=value ...]
 
@@ -72,8 +72,15 @@ def build_parser(prog: str = "freamer-rl health") -> argparse.ArgumentParser:
         "--score",
         choices=SCORES,
         default="kl",
-        help="with --data: the per-step score flagged, kl (the posterior's surprise) or prediction (the prior's "
-        "one-step prediction error of the observation)",
+        help="with --data: the per-step score flagged, kl (the posterior's surprise), prediction (the prior's "
+        "one-step prediction error of the observation), channel (its largest per-feature residual in that "
+        "feature's running RMS) or hr_lag (no world model: the residual of a heart-rate lag predictor)",
+    )
+    p_an.add_argument(
+        "--stale-steps",
+        type=int,
+        default=0,
+        help="with --data: also flag steps whose IMU features have not changed for N steps (a frozen sensor; 0: off)",
     )
     p_b = sub.add_parser("baselines", help="the ceiling table: an oracle planner on the true simulator vs the rules")
     p_b.add_argument("recipe", help="health recipe: its env and eval sections set the episodes")
@@ -106,6 +113,7 @@ def _anomaly(args: argparse.Namespace) -> dict:
         ("--k-sigma", args.k_sigma, lambda v: v >= 0, "a number >= 0"),
         ("--tolerance-s", args.tolerance_s, lambda v: v >= 0, "seconds >= 0"),
         ("--segment-steps", args.segment_steps, lambda v: v >= 0, "an integer >= 0 (0: one filter episode)"),
+        ("--stale-steps", args.stale_steps, lambda v: v >= 0, "an integer >= 0 (0: off)"),
     )
     for flag, value, ok, expected in checks:
         if value is not None and not (math.isfinite(value) and ok(value)):
@@ -134,6 +142,7 @@ def _anomaly(args: argparse.Namespace) -> dict:
         tolerance_s=args.tolerance_s,
         segment_steps=args.segment_steps,
         score=args.score,
+        stale_steps=args.stale_steps,
     )
 
 

@@ -200,6 +200,8 @@ def anomaly_statistic(
     warm-up and where ``include`` is False).
     """
     det = KLAnomalyDetector(k_sigma, warmup, momentum, min_std, statistic=statistic, halflife=halflife)
+    if det.statistic == "running":
+        return _running_statistic(kl, k_sigma, warmup, min_std, include)
     flags, mean, std = [], [], []
     nan = torch.full_like(kl[..., 0], float("nan"))
     for t in range(kl.shape[-1]):
@@ -220,6 +222,38 @@ def anomaly_statistic(
     return {
         "flags": torch.stack(flags, -1),
         "threshold": mean_t + k_sigma * std_t,
+        "mean": mean_t,
+        "std": std_t,
+        "z": z,
+    }
+
+
+def _running_statistic(
+    kl: torch.Tensor, k_sigma: float, warmup: int, min_std: float, include: torch.Tensor | None
+) -> dict[str, torch.Tensor]:
+    """:func:`anomaly_statistic` with the running (Welford) statistic in closed form over the time axis: the mean
+    and sample std of the included values before each step from prefix sums in float64 (no per-step loop; a 48-hour
+    scenario is 34,560 steps). The same flags as streaming :class:`KLAnomalyDetector` up to float32 rounding."""
+    x = kl.detach().double()
+    inc = torch.ones_like(x, dtype=torch.bool) if include is None else include.to(torch.bool).expand(x.shape)
+    xi = torch.where(inc, x, torch.zeros_like(x))
+    count = torch.cumsum(inc.long(), -1) - inc.long()  # included values before the step
+    s1 = torch.cumsum(xi, -1) - xi
+    s2 = torch.cumsum(xi * xi, -1) - xi * xi
+    n = count.clamp(min=1).double()
+    mean = s1 / n
+    var = ((s2 - s1 * mean) / (count - 1).clamp(min=1).double()).clamp(min=0)
+    ready = count >= warmup
+    nan = torch.full_like(x, float("nan"))
+    mean_t = torch.where(ready, mean, nan).float()
+    std_t = torch.where(ready, var.sqrt().clamp(min=min_std), nan).float()
+    threshold = mean_t + k_sigma * std_t
+    z = (kl.float() - mean_t) / std_t
+    if include is not None:
+        z = z.masked_fill(~inc, float("nan"))
+    return {
+        "flags": ready & inc & (kl.float() > threshold),
+        "threshold": threshold,
         "mean": mean_t,
         "std": std_t,
         "z": z,
