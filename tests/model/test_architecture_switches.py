@@ -159,3 +159,26 @@ def test_yaml_off_is_the_string_off(tmp_path):
     recipe = tmp_path / "r.yaml"
     recipe.write_text("model:\n  flow: {placement: off}\n")
     assert load_config(recipe).model.flow.placement == "off"
+
+
+@pytest.mark.parametrize("critic_input", ["shared", "detached"])
+def test_critic_input_sets_whether_the_value_loss_trains_the_trunk(critic_input):
+    """``model.critic_input: detached``: the value head reads the trunk's features through a stop-gradient, so the
+    value loss moves the head only; the parameters and their state-dict keys are those of ``shared``."""
+    cfg = load_config(TINY, [f"model.critic_input={critic_input}"])
+    torch.manual_seed(0)
+    modules = build_modules(cfg)
+    data = _rollout(cfg, modules)
+    td = modules.actor_value.get_value_operator()(data.clone())
+    td["state_value"].pow(2).mean().backward()
+    trunk_grads = [p.grad for p in modules.trunk.parameters() if p.requires_grad]
+    reached = any(g is not None and g.abs().sum() > 0 for g in trunk_grads)
+    assert reached == (critic_input == "shared")
+    assert all(p.grad is not None for p in modules.critic.parameters())
+    shared = build_modules(load_config(TINY, []))
+    assert modules.critic.state_dict().keys() == shared.critic.state_dict().keys()
+
+
+def test_critic_input_is_checked():
+    with pytest.raises(ConfigError, match="model.critic_input: expected one of shared, detached, got 'frozen'"):
+        load_config(TINY, ["model.critic_input=frozen"])

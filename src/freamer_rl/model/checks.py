@@ -9,6 +9,7 @@ from freamer_rl.errors import ConfigError
 from freamer_rl.layers.dnc import WRITES
 from freamer_rl.layers.flow_matching import RELIABILITY_MODES
 from freamer_rl.model.factory import FUSIONS, PLACEMENTS
+from freamer_rl.model.heads import CRITIC_INPUTS
 from freamer_rl.model.modalities import MODALITIES
 
 __all__ = ["check_model_names", "check_model_shapes"]
@@ -81,6 +82,10 @@ def check_model_names(model: Any) -> None:
     _check_flow_choices(model.flow)
     if model.dnc.write not in WRITES:
         raise ConfigError(f"model.dnc.write: expected one of {', '.join(WRITES)}, got {model.dnc.write!r}")
+    if model.critic_input not in CRITIC_INPUTS:
+        raise ConfigError(
+            f"model.critic_input: expected one of {', '.join(CRITIC_INPUTS)}, got {model.critic_input!r}"
+        )
     if model.fusion not in FUSIONS:
         raise ConfigError(f"model.fusion: expected one of {', '.join(FUSIONS)}, got {model.fusion!r}")
     if model.fusion_hidden is not None and model.fusion != "concat":

@@ -112,6 +112,10 @@ class ModelConfig:
     fusion_hidden: int | None = None  # width of the concat MLP (None: embed_dim); set it to match parameter counts
     cross_modal_heads: int = 4
     head_hidden: int = 128
+    # what the value head's gradient reaches: shared (the paper's: the critic loss trains the trunk with the actor)
+    # or detached (the critic reads the trunk's features through a stop-gradient; the trunk learns from the policy
+    # and auxiliary losses only -- a value loss on returns of ~100 no longer swamps the actor's signal in the trunk)
+    critic_input: str = "shared"
     vision: VisionConfig = field(default_factory=VisionConfig)
     language: LanguageConfig = field(default_factory=LanguageConfig)
     state: StateConfig = field(default_factory=StateConfig)

@@ -181,7 +181,7 @@ def build_freamer(
     trunk = TensorDictSequential(*steps)
 
     actor = build_actor(action_spec, d, cfg.head_hidden)
-    critic = build_critic(d, cfg.head_hidden)
+    critic = build_critic(d, cfg.head_hidden, detached=getattr(cfg, "critic_input", "shared") == "detached")
     actor_value = ActorValueOperator(trunk, actor, critic)
     return FreamerModules(
         actor_value=actor_value,

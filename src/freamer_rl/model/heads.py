@@ -24,7 +24,10 @@ from torchrl.modules import IndependentNormal, OneHotCategorical, ProbabilisticA
 from freamer_rl.errors import EnvSetupError
 from freamer_rl.layers.tdmodule import KeyedModule
 
-__all__ = ["build_actor", "build_critic", "action_kind", "mlp_head"]
+__all__ = ["build_actor", "build_critic", "action_kind", "mlp_head", "CRITIC_INPUTS"]
+
+#: ``model.critic_input`` choices: the critic's gradient reaches the trunk (shared) or stops at its input (detached)
+CRITIC_INPUTS = ("shared", "detached")
 
 
 def mlp_head(in_dim: int, hidden: int, out_dim: int, out_gain: float) -> nn.Sequential:
@@ -90,9 +93,18 @@ def build_actor(action_spec, in_dim: int, hidden: int, in_key="hidden") -> Proba
     )
 
 
-def build_critic(in_dim: int, hidden: int, in_key="hidden") -> ValueOperator:
-    """``V(s)``: the same MLP with one output, written to ``"state_value"``."""
-    return ValueOperator(mlp_head(in_dim, hidden, 1, out_gain=1.0), in_keys=[in_key])
+def build_critic(in_dim: int, hidden: int, in_key="hidden", *, detached: bool = False) -> ValueOperator:
+    """``V(s)``: the same MLP with one output, written to ``"state_value"``; ``detached``: through a stop-gradient
+    on its input (the value loss trains the head only; the same parameters and state-dict keys)."""
+    net = mlp_head(in_dim, hidden, 1, out_gain=1.0)
+    return ValueOperator(_DetachedInput(*net) if detached else net, in_keys=[in_key])
+
+
+class _DetachedInput(nn.Sequential):
+    """An ``nn.Sequential`` that reads its input through ``detach()`` (its layers and keys unchanged)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return super().forward(x.detach())
 
 
 class _Unflatten(nn.Module):
