@@ -70,3 +70,30 @@ def test_resume_restores_the_running_std_of_the_training_corruption(tmp_path):
 def test_a_corruption_the_world_model_does_not_read_names_the_field(tmp_path):
     with pytest.raises(ConfigError, match=r"env\.corrupt\[0\]\.key"):
         _trainer(tmp_path, "env.corrupt=[{key: heart_rate, kind: gaussian, level: 1.0, when: train}]")
+
+
+def test_a_sigterm_that_a_library_turns_into_its_own_error_still_checkpoints_and_stops(tmp_path, monkeypatch):
+    """SIGTERM during the imagined PPO update once came back from inside TorchRL as another error, and the suite
+    recorded the run as failed. An error whose context is the interrupt is re-raised as the interrupt: the
+    trainer warns, keeps the last iteration's checkpoint and raises Terminated; the rerun resumes from it."""
+    from freamer_rl.run.rundir import Terminated
+
+    trainer = _trainer(tmp_path, "collect.iterations=2")
+    real_update, calls = trainer.algo.update, []
+
+    def wrapped_by_a_library(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 1 + trainer.cfg.imagination.updates:  # the first update of iteration 2
+            try:
+                raise Terminated("SIGTERM")
+            except KeyboardInterrupt:
+                raise RuntimeError("a library's cleanup failed while the interrupt unwound") from None
+        return real_update(*args, **kwargs)
+
+    monkeypatch.setattr(trainer.algo, "update", wrapped_by_a_library)
+    with pytest.raises(Terminated):
+        trainer.train()
+    assert read_checkpoint(latest_checkpoint(tmp_path / "run"))["iteration"] == 1
+    resumed = _trainer(tmp_path, "collect.iterations=2")
+    assert resumed.iteration == 1
+    resumed.life.lock.release()

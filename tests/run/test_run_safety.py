@@ -32,7 +32,7 @@ from freamer_rl.run.checkpoint import (
     to_plain,
 )
 from freamer_rl.run.loop import default_run_name
-from freamer_rl.run.rundir import RunDirLock, Terminated
+from freamer_rl.run.rundir import RunDirLock, Terminated, interrupt_in_chain, surfaced_interrupts
 from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.trainers.registry import load_config
 
@@ -368,6 +368,52 @@ def test_sigterm_checkpoints_and_restores_the_handler(tmp_path, monkeypatch):
         assert signal.getsignal(signal.SIGTERM) is previous
     finally:
         signal.signal(signal.SIGTERM, old)
+    resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
+    assert resumed.frames == 128 and resumed.resumed_from is not None
+    resumed.life.lock.release()
+
+
+def test_an_error_caused_by_an_interrupt_is_raised_as_the_interrupt():
+    def wrapped(interrupt):
+        try:
+            raise interrupt
+        except KeyboardInterrupt:
+            try:
+                raise ValueError("inner cleanup")
+            except ValueError as inner:
+                raise RuntimeError("outer") from inner
+
+    with pytest.raises(RuntimeError) as info:
+        wrapped(Terminated("SIGTERM"))
+    assert isinstance(interrupt_in_chain(info.value), Terminated)
+    assert interrupt_in_chain(RuntimeError("plain")) is None
+    with pytest.raises(Terminated):
+        with surfaced_interrupts():
+            wrapped(Terminated("SIGTERM"))
+    with pytest.raises(ValueError, match="unrelated"):  # other errors pass through unchanged
+        with surfaced_interrupts():
+            raise ValueError("unrelated")
+
+
+def test_sigterm_inside_a_library_that_raises_its_own_error_still_checkpoints(tmp_path, monkeypatch, caplog):
+    run = tmp_path / "run"
+    trainer = Trainer(tiny_cfg("run.total_frames=384", "logging.checkpoint_every_frames=100000"), run)
+    real_update, calls = trainer._update, []
+
+    def library_error_on_second_batch(data):
+        calls.append(1)
+        if len(calls) == 2:
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)  # the handler raises Terminated here
+            except KeyboardInterrupt:
+                raise RuntimeError("a library's own error while the interrupt unwound") from None
+        return real_update(data)
+
+    monkeypatch.setattr(trainer, "_update", library_error_on_second_batch)
+    with pytest.raises(Terminated):
+        trainer.train()
+    assert "terminated by SIGTERM at 128 frames; saved" in caplog.text
     resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
     assert resumed.frames == 128 and resumed.resumed_from is not None
     resumed.life.lock.release()

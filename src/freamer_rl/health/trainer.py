@@ -72,6 +72,7 @@ from freamer_rl.run.corruption import load_corruption_state
 from freamer_rl.run.lifecycle import RunLifecycle
 from freamer_rl.run.metrics import LogMeans, ProgressReporter, format_duration, format_rate
 from freamer_rl.run.optim import StepStats, optimizer_step, restore_optimizer
+from freamer_rl.run.rundir import surfaced_interrupts
 from freamer_rl.world_model.imagination import ImaginationPPO, RSSMWorldModelEnv
 from freamer_rl.world_model.metrics import seed_latents
 from freamer_rl.world_model.rssm import WorldModel
@@ -376,28 +377,29 @@ class HealthTrainer:
             total, self.frames, bar=cfg.logging.progress_bar, desc=f"health[{cfg.encoder.kind}]"
         )
         try:
-            if not self.prefilled:
-                row = self._prefill()
-                if row is not None:
+            with surfaced_interrupts():  # an interrupt that a library turned into its own error
+                if not self.prefilled:
+                    row = self._prefill()
+                    if row is not None:
+                        self.life.log_row(row, metrics, self.frames)
+                    self.life.checkpoint(self._payload())
+                self.policy.random_actions = False
+                self.policy.random_action_prob = cc.random_action_prob
+                for it in range(self.iteration + 1, cc.iterations + 1):
+                    before = self.frames
+                    row = self._iterate(it)
+                    self.iteration = it
                     self.life.log_row(row, metrics, self.frames)
-                self.life.checkpoint(self._payload())
-            self.policy.random_actions = False
-            self.policy.random_action_prob = cc.random_action_prob
-            for it in range(self.iteration + 1, cc.iterations + 1):
-                before = self.frames
-                row = self._iterate(it)
-                self.iteration = it
-                self.life.log_row(row, metrics, self.frames)
-                self.life.checkpoint(self._payload())  # each iteration: a crash or a kill resumes from here
-                progress.update(
-                    self.frames,
-                    self.frames - before,
-                    extra={
-                        "iteration": f"{it}/{cc.iterations}",
-                        "return": format_rate(row["train_return"], 1),
-                        "rec": format_rate(row.get("wm_loss_rec", math.nan)),
-                    },
-                )
+                    self.life.checkpoint(self._payload())  # each iteration: a crash or a kill resumes from here
+                    progress.update(
+                        self.frames,
+                        self.frames - before,
+                        extra={
+                            "iteration": f"{it}/{cc.iterations}",
+                            "return": format_rate(row["train_return"], 1),
+                            "rec": format_rate(row.get("wm_loss_rec", math.nan)),
+                        },
+                    )
         except KeyboardInterrupt as err:
             self.life.interrupted(err, f"after iteration {self.iteration}", latest_checkpoint(self.run_dir))
             raise

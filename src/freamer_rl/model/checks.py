@@ -83,9 +83,7 @@ def check_model_names(model: Any) -> None:
     if model.dnc.write not in WRITES:
         raise ConfigError(f"model.dnc.write: expected one of {', '.join(WRITES)}, got {model.dnc.write!r}")
     if model.critic_input not in CRITIC_INPUTS:
-        raise ConfigError(
-            f"model.critic_input: expected one of {', '.join(CRITIC_INPUTS)}, got {model.critic_input!r}"
-        )
+        raise ConfigError(f"model.critic_input: expected one of {', '.join(CRITIC_INPUTS)}, got {model.critic_input!r}")
     if model.fusion not in FUSIONS:
         raise ConfigError(f"model.fusion: expected one of {', '.join(FUSIONS)}, got {model.fusion!r}")
     if model.fusion_hidden is not None and model.fusion != "concat":

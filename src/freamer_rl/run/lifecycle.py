@@ -44,7 +44,14 @@ from freamer_rl.run.checkpoint import (
 )
 from freamer_rl.run.files import make_metrics_logger, write_run_files
 from freamer_rl.run.metrics import RETURN_SERIES, json_safe, plot_learning_curve, quiet_library_logs
-from freamer_rl.run.rundir import RunDirLock, Terminated, catch_sigterm, restore_sigterm, write_rows_csv
+from freamer_rl.run.rundir import (
+    RunDirLock,
+    Terminated,
+    catch_sigterm,
+    restore_sigterm,
+    surfaced_interrupts,
+    write_rows_csv,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -155,7 +162,7 @@ class RunLifecycle:
         self.lock.acquire()  # no-op while the constructor's lock is held
         sigterm = catch_sigterm()
         try:
-            with quiet_library_logs():
+            with quiet_library_logs(), surfaced_interrupts():
                 yield
         finally:
             restore_sigterm(sigterm)

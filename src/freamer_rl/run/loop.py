@@ -45,7 +45,7 @@ from freamer_rl.run.crafter_score import CrafterScore
 from freamer_rl.run.envs import make_batched_env
 from freamer_rl.run.lifecycle import RunLifecycle
 from freamer_rl.run.metrics import EpisodeStats, ProgressReporter, format_duration, format_rate
-from freamer_rl.run.rundir import RunDirLock
+from freamer_rl.run.rundir import RunDirLock, surfaced_interrupts
 
 logger = logging.getLogger(__name__)
 
@@ -316,27 +316,28 @@ class RunLoop:
             logger.info("compiling the model (model.compile) during the first batches: they take longer")
         t_batch = time.perf_counter()
         try:
-            for data in collector:
-                losses = self._learn(data)
-                # counted only once trained on, so a checkpoint written on interrupt is consistent
-                self.stats.update(data, self.frames)
-                if self.achievements is not None:
-                    self.achievements.update(data)
-                self.frames += data.numel()
-                collector.update_policy_weights_()
-                self.batches += 1
-                now = time.perf_counter()
-                row = self._batch_row(data.numel() / max(now - t_batch, 1e-9), losses)
-                t_batch = now
-                self.life.log_row(
-                    row, metrics_logger, self.frames, to_logger=self.batches % cfg.logging.log_every_batches == 0
-                )
-                progress.update(self.frames, data.numel(), self.stats)
-                if self.frames >= next_ckpt:
-                    self._checkpoint()
-                    next_ckpt += every
-                if self._should_stop():
-                    break
+            with surfaced_interrupts():  # an interrupt that a library turned into its own error
+                for data in collector:
+                    losses = self._learn(data)
+                    # counted only once trained on, so a checkpoint written on interrupt is consistent
+                    self.stats.update(data, self.frames)
+                    if self.achievements is not None:
+                        self.achievements.update(data)
+                    self.frames += data.numel()
+                    collector.update_policy_weights_()
+                    self.batches += 1
+                    now = time.perf_counter()
+                    row = self._batch_row(data.numel() / max(now - t_batch, 1e-9), losses)
+                    t_batch = now
+                    self.life.log_row(
+                        row, metrics_logger, self.frames, to_logger=self.batches % cfg.logging.log_every_batches == 0
+                    )
+                    progress.update(self.frames, data.numel(), self.stats)
+                    if self.frames >= next_ckpt:
+                        self._checkpoint()
+                        next_ckpt += every
+                    if self._should_stop():
+                        break
         except KeyboardInterrupt as err:
             # keep everything learnt so far: rerunning the same command resumes from this checkpoint
             self.life.interrupted(err, f"at {self.frames} frames", self._checkpoint())

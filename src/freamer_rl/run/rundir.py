@@ -15,6 +15,7 @@ unavailable a warning is logged and the run proceeds unlocked.
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import errno
 import io
@@ -26,6 +27,7 @@ import socket
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +46,8 @@ __all__ = [
     "LOCK_NAME",
     "RunDirLock",
     "Terminated",
+    "interrupt_in_chain",
+    "surfaced_interrupts",
     "catch_sigterm",
     "next_attempt_name",
     "restore_sigterm",
@@ -170,6 +174,33 @@ def catch_sigterm() -> Any:
 
     previous = signal.signal(signal.SIGTERM, handler)
     return ("installed", previous)
+
+
+def interrupt_in_chain(err: BaseException) -> KeyboardInterrupt | None:
+    """The Ctrl-C / SIGTERM (:class:`KeyboardInterrupt`) behind ``err``: ``err`` itself or one of its causes /
+    contexts (a library that catches every exception inside its own ``try`` turns an interrupt raised there into
+    its own error, e.g. a RuntimeError whose ``__context__`` is :class:`Terminated`); None if there is none."""
+    seen: set[int] = set()
+    e: BaseException | None = err
+    while e is not None and id(e) not in seen:
+        if isinstance(e, KeyboardInterrupt):
+            return e
+        seen.add(id(e))
+        e = e.__cause__ or e.__context__
+    return None
+
+
+@contextlib.contextmanager
+def surfaced_interrupts() -> Iterator[None]:
+    """Re-raise an error caused by a Ctrl-C / SIGTERM (:func:`interrupt_in_chain`) as that interrupt, so that the
+    trainer's ``except KeyboardInterrupt`` checkpoints and stops as for any interrupt instead of the run failing."""
+    try:
+        yield
+    except Exception as err:
+        interrupt = interrupt_in_chain(err)
+        if interrupt is None:
+            raise
+        raise interrupt from err
 
 
 def restore_sigterm(token: Any) -> None:
