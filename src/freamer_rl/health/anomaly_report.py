@@ -445,9 +445,18 @@ def filter_labelled(
     seg = cfg.env.episode_length if segment_steps is None else int(segment_steps)
     scores, include = filter_recording(agent, feat, seg, warmup=warmup)
     return FilteredRecording(
-        str(data), str(labels), rec.subject, cfg.encoder.kind, rec.duration_s / 3600.0, feat, intervals, scores,
-        include, seg if seg > 0 else len(feat), warmup,
-    )  # fmt: skip
+        data=str(data),
+        labels=str(labels),
+        subject=rec.subject,
+        encoder=cfg.encoder.kind,
+        recording_hours=rec.duration_s / 3600.0,
+        feat=feat,
+        intervals=intervals,
+        scores=scores,
+        include=include,
+        segment_steps=seg if seg > 0 else len(feat),
+        warmup=warmup,
+    )
 
 
 def score_filtered(
