@@ -156,3 +156,22 @@ def test_every_trainer_reports_its_trainable_parameters_and_the_suite_tables_the
     write_report(tmp_path / "out", "demo", [record])
     md = (tmp_path / "out" / "summary.md").read_text()
     assert "trainable params" in md and f"{summary['trainable_params']:,}" in md
+
+
+def test_a_task_without_success_reports_the_return_iqm_and_every_seed(tmp_path):
+    runs = []
+    for seed, ret in enumerate((100.0, 200.0, 300.0, 400.0)):
+        run = tmp_path / f"seed{seed}"
+        run.mkdir()
+        (run / "summary.json").write_text(
+            json.dumps({"frames": 1000, "episodes": 50, "final_success_rate": None, "final_return_mean": ret})
+        )
+        (run / "progress.csv").write_text("frames,episodes,return_mean\n1000,50,1.0\n")
+        (run / "done.json").write_text(json.dumps({"total_frames": 1000, "frames": 1000}))
+        runs.append(RunRecord(label="a", env="e", env_dir="e", seed=seed, run_dir=run, target_frames=1000))
+    write_report(tmp_path / "out", "demo", runs)
+    md = (tmp_path / "out" / "summary.md").read_text()
+    assert "final return IQM [95% CI] [per seed]" in md and "final success" not in md
+    line = next(line for line in md.splitlines() if line.startswith("| a |"))
+    # the IQM of 4 values is the mean of the middle two: (200 + 300) / 2
+    assert "| 250.00 [" in line and line.rstrip().endswith("[100.00 / 200.00 / 300.00 / 400.00] |"), line

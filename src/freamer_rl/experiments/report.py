@@ -367,6 +367,10 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
             row[f"{key}_reached"] = len(reached) if known else None
             row[f"{key}_per_seed"] = _per_seed(done, key)
         _add_iqm(row, env, "success_rate", [r.get("success_rate") for r in done])
+        _add_iqm(row, env, "return_mean", [r.get("return_mean") for r in done])
+        row["return_mean_per_seed"] = " / ".join(
+            "—" if _missing(r.get("return_mean")) else f"{r['return_mean']:.2f}" for r in done
+        )
         # episodes to 95%: only when every seed reached it (an IQM of the reached ones would flatter the arm)
         reached = row["episodes_to_95_reached"]
         _add_iqm(row, env, "episodes_to_95", [r.get("episodes_to_95") for r in done] if reached == len(done) else [])
@@ -423,6 +427,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     head += [f"frames to return {t:g} [per seed]" for t in targets]
     head += ["frames/s", "trainable params"]
     head += ["final success IQM [95% CI]", "episodes to 95% IQM [95% CI]"] if has_success else []
+    head += [] if has_success else ["final return IQM [95% CI] [per seed]"]
     note = (
         "Final values: mean (min–max) across the seeds done; to X%: the exact episode (and its frame) at which the "
         "trailing 100-episode success rate first reached X, as the mean of the seeds that reached it, then each "
@@ -450,6 +455,8 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [_to95(r, "frames_to_return") if r.get("return_target") == t else "" for t in targets]
         cells += [_cell(r, "fps", 0), _cell(r, "trainable_params", 0)]
         cells += [_iqm_cell(r, "success_rate", 3), _iqm_cell(r, "episodes_to_95", 0)] if has_success else []
+        if not has_success:  # tasks scored by their return (CartPole, Pendulum, Crafter): its IQM and every seed's
+            cells += [f"{_iqm_cell(r, 'return_mean', 2)} [{r['return_mean_per_seed']}]" if r["seeds_done"] else ""]
         lines.append("| " + " | ".join(cells) + " |")
     if any(r.get("chain") for r in rows):
         lines += [
