@@ -11,7 +11,7 @@ from freamer_rl.experiments.stats import (
     mean_ratio_ci,
     probability_of_improvement,
     stratified_bootstrap_ci,
-    task_mean_ci,
+    subject_bootstrap_ci,
 )
 
 
@@ -80,10 +80,13 @@ def test_mean_ratio_ci_is_exact_for_constant_arms_and_bounded_by_the_extremes():
     assert all(math.isnan(v) for v in mean_ratio_ci([1.0], [0.0])[1:])  # no finite replicate: NaN bounds
 
 
-def test_task_mean_ci_weighs_every_task_alike():
-    # task a has one seed at 0, task b three at 10: the mean of the task means is 5 (the pooled mean would be 7.5);
-    # a single seed cannot move, so every replicate is (0 + mean of b's resample) / 2 = 5
-    point, low, high = task_mean_ci({"a": [0.0], "b": [10.0, 10.0, 10.0]})
-    assert (point, low, high) == (5.0, 5.0, 5.0)
-    point, low, high = task_mean_ci({"a": [0.0, 2.0], "b": [10.0]})
-    assert point == 5.5 and 5.0 <= low < high <= 6.0  # a's resampled mean lies in [0, 2]
+def test_subject_bootstrap_ci_weighs_every_group_alike_and_resamples_the_groups():
+    # group a has one seed at 0, b three at 10: the mean of the group means is 5 (the pooled mean would be 7.5); the
+    # groups are drawn with replacement, so a replicate is 0 (a, a), 5 (a, b) or 10 (b, b) with odds 1/4, 1/2, 1/4
+    point, low, high = subject_bootstrap_ci({"a": [0.0], "b": [10.0, 10.0, 10.0]}, reps=4000)
+    assert (point, low, high) == (5.0, 0.0, 10.0)
+    # identical groups: nothing can move
+    assert subject_bootstrap_ci({"a": [3.0], "b": [3.0], "c": [3.0]}) == (3.0, 3.0, 3.0)
+    # one group: only its seeds are resampled, so the interval lies within their range
+    point, low, high = subject_bootstrap_ci({"a": [0.0, 2.0]})
+    assert point == 1.0 and 0.0 <= low < high <= 2.0

@@ -6,14 +6,15 @@ and :func:`health_markdown` for the section, and :func:`loso_markdown` for the l
 
 from __future__ import annotations
 
+import math
 import statistics
 from typing import Any
 
 import numpy as np
 
-from freamer_rl.experiments.stats import is_missing, mean_ratio_ci, stratified_bootstrap_ci, task_mean_ci
+from freamer_rl.experiments.stats import is_missing, mean_ratio_ci, stratified_bootstrap_ci, subject_bootstrap_ci
 
-__all__ = ["HEALTH_METRICS", "health_markdown", "health_summary", "loso_markdown"]
+__all__ = ["HEALTH_METRICS", "HEALTH_REFERENCES", "health_markdown", "health_summary", "loso_markdown"]
 
 #: the health trainer's summary.json metrics (paper Table 15): (key, column, digits); ``params_encoder`` beside them
 HEALTH_METRICS = (
@@ -106,23 +107,61 @@ def health_markdown(rows: list[dict]) -> list[str]:
     return lines
 
 
-def _loso_folds(results: list[dict]) -> dict[str, dict[str, list[float]]]:
-    """``{encoder: {held-out subjects: [reward per seed]}}`` over the finished health runs that name their
-    evaluation subjects; only encoders evaluated on two or more held-out sets (folds)."""
-    folds: dict[str, dict[str, list[float]]] = {}
+#: the heart-rate rule's and the oracle planner's return on a run's own evaluation episodes (summary.json,
+#: eval.references), beside the run's ``eval_return_mean`` in runs.csv and the leave-one-subject-out section
+HEALTH_REFERENCES = ("eval_ref_hr_threshold_return", "eval_ref_oracle_return")
+LOSO_VALUES = ("eval_return_mean", *HEALTH_REFERENCES)
+
+
+def _loso_folds(results: list[dict]) -> dict[str, dict[str, list[dict[str, float]]]]:
+    """``{encoder: {held-out subjects: [{value: float} per seed]}}`` over the finished health runs that name their
+    evaluation subjects (a missing reference is NaN); only encoders evaluated on two or more held-out sets (folds)."""
+    folds: dict[str, dict[str, list[dict[str, float]]]] = {}
     for r in results:
         if r["status"] != "done" or is_missing(r.get("eval_return_mean")) or not r.get("eval_subjects"):
             continue
-        enc = r.get("encoder") or r["label"]
-        folds.setdefault(enc, {}).setdefault(r["eval_subjects"], []).append(float(r["eval_return_mean"]))
+        values = {k: math.nan if is_missing(r.get(k)) else float(r[k]) for k in LOSO_VALUES}
+        folds.setdefault(r.get("encoder") or r["label"], {}).setdefault(r["eval_subjects"], []).append(values)
     return {enc: f for enc, f in folds.items() if len(f) > 1}
+
+
+def _fold_values(by_fold: dict[str, list[dict[str, float]]], value) -> dict[str, list[float]]:
+    """``{fold: [value(run) per seed]}``; folds where it is NaN for every seed are left out."""
+    out = {f: [value(run) for run in runs] for f, runs in by_fold.items()}
+    return {f: [v for v in vals if math.isfinite(v)] for f, vals in out.items() if any(map(math.isfinite, vals))}
+
+
+def _ci_cell(scores: dict[str, list[float]], digits: int = 1) -> str:
+    if not scores:
+        return ""
+    point, low, high = subject_bootstrap_ci(scores)
+    return f"{point:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+
+
+def _loso_row(enc: str, by_fold: dict[str, list[dict[str, float]]]) -> str:
+    """One encoder's overall row: reward, the rule and the oracle on the same episodes, the paired difference to the
+    rule and the fraction of the oracle (each a mean over folds with its subject bootstrap), folds at or above the
+    rule, and each fold's mean reward / rule."""
+    reward = _fold_values(by_fold, lambda r: r["eval_return_mean"])
+    rule = _fold_values(by_fold, lambda r: r["eval_ref_hr_threshold_return"])
+    oracle = _fold_values(by_fold, lambda r: r["eval_ref_oracle_return"])
+    vs_rule = _fold_values(by_fold, lambda r: r["eval_return_mean"] - r["eval_ref_hr_threshold_return"])
+    of_oracle = _fold_values(by_fold, lambda r: r["eval_return_mean"] / r["eval_ref_oracle_return"])
+    at_rule = sum(np.mean(v) >= 0 for v in vs_rule.values())
+    per_fold = ", ".join(
+        f"{f}: {np.mean(reward[f]):.1f}" + (f" / {np.mean(rule[f]):.1f}" if f in rule else "") for f in sorted(reward)
+    )
+    runs = sum(len(v) for v in by_fold.values())
+    cells = [enc, str(len(by_fold)), str(runs), _ci_cell(reward), _ci_cell(rule), _ci_cell(oracle)]
+    cells += [_ci_cell(vs_rule), _ci_cell(of_oracle, 3), f"{at_rule}/{len(vs_rule)}" if vs_rule else "", per_fold]
+    return "| " + " | ".join(cells) + " |"
 
 
 def loso_markdown(results: list[dict]) -> list[str]:
     """The leave-one-subject-out section of summary.md (``[]`` unless some encoder was evaluated on two or more
-    held-out subject sets): per encoder, the reward over all folds with a 95% stratified-bootstrap interval (each
-    fold's seeds resampled within the fold, so every fold keeps its weight), the folds and seeds done, and each
-    fold's mean."""
+    held-out subject sets): per encoder, one :func:`_loso_row`. Every interval is a two-level bootstrap
+    (:func:`~freamer_rl.experiments.stats.subject_bootstrap_ci`: the held-out subjects resampled, then each one's
+    seeds), so it says how the encoder would do on a new subject, not only on a new seed of these nine."""
     folds = _loso_folds(results)
     if not folds:
         return []
@@ -130,15 +169,14 @@ def loso_markdown(results: list[dict]) -> list[str]:
         "",
         "## Leave-one-subject-out, overall (per encoder)",
         "",
-        "Reward: the real-env evaluation return on the held-out subject, averaged over the folds; 95% stratified "
-        "bootstrap interval with the folds as strata. Per fold: held-out subjects = mean over its seeds.",
+        "Reward: the real-env evaluation return on the held-out subject; HR rule / oracle: the heart-rate rule's and "
+        "the oracle planner's return on the same episodes; - HR rule: the paired difference; of oracle: reward / "
+        "oracle. Each a mean over the folds (every fold weighs the same) with a 95% two-level bootstrap interval "
+        "(folds resampled, then each fold's seeds). At >= rule: folds whose mean reward is at or above the rule's. "
+        "Per fold: held-out subjects: mean reward / mean HR rule over its seeds.",
         "",
-        "| encoder | folds | runs | reward [95% CI] | per fold |",
-        "|---|---:|---:|---:|---|",
+        "| encoder | folds | runs | reward [95% CI] | HR rule | oracle | - HR rule [95% CI] | of oracle [95% CI] "
+        "| at >= rule | per fold |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
-    for enc, by_fold in folds.items():
-        point, low, high = task_mean_ci(by_fold)  # every fold weighs the same, whatever its seeds done
-        runs = sum(len(v) for v in by_fold.values())
-        per_fold = ", ".join(f"{f}: {np.mean(v):.1f}" for f, v in sorted(by_fold.items()))
-        lines.append(f"| {enc} | {len(by_fold)} | {runs} | {point:.1f} [{low:.1f}, {high:.1f}] | {per_fold} |")
-    return lines
+    return lines + [_loso_row(enc, by_fold) for enc, by_fold in folds.items()]

@@ -27,7 +27,13 @@ from typing import Any
 
 import numpy as np
 
-from freamer_rl.experiments.health_table import HEALTH_METRICS, health_markdown, health_summary, loso_markdown
+from freamer_rl.experiments.health_table import (
+    HEALTH_METRICS,
+    HEALTH_REFERENCES,
+    health_markdown,
+    health_summary,
+    loso_markdown,
+)
 from freamer_rl.experiments.stats import iqm_ci
 from freamer_rl.experiments.stats import is_missing as _missing
 from freamer_rl.run.checkpoint import atomic_write_text
@@ -280,7 +286,7 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
     out["fps"] = None if _missing(fps) else round(float(fps), 1)
     out["wall_time_s"] = None if _missing(wall) else round(float(wall), 1)
     out["episodes"] = None if _missing(out["episodes"]) else int(out["episodes"])
-    for key in (*(k for k, _, _ in HEALTH_METRICS), "params_encoder"):
+    for key in (*(k for k, _, _ in HEALTH_METRICS), *HEALTH_REFERENCES, "params_encoder"):
         out[key] = None if _missing(summary.get(key)) else summary[key]
     out["encoder"] = summary.get("encoder")  # health runs: the encoder kind and the held-out subjects (LOSO rows)
     out["eval_subjects"] = " ".join(str(s) for s in summary.get("eval_subjects") or [])
@@ -530,7 +536,7 @@ def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict
     output.mkdir(parents=True, exist_ok=True)
     results = [read_run(rec) for rec in records]
     health = [k for k, _, _ in HEALTH_METRICS if any(r.get(k) is not None for r in results)]
-    health += ["params_encoder", "encoder", "eval_subjects"] if health else []
+    health += [*HEALTH_REFERENCES, "params_encoder", "encoder", "eval_subjects"] if health else []
     write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS[:-2] + health + RUN_FIELDS[-2:])
     rows = summary_rows(results)
     write_rows_csv(output / "summary.csv", [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])

@@ -22,7 +22,7 @@ __all__ = [
     "iqm",
     "stratified_bootstrap_ci",
     "iqm_ci",
-    "task_mean_ci",
+    "subject_bootstrap_ci",
     "mean_ratio_ci",
     "difference_ci",
     "probability_of_improvement",
@@ -81,20 +81,21 @@ def iqm_ci(scores: Scores, **options) -> tuple[float, float, float]:
     return stratified_bootstrap_ci(scores, iqm, **options)
 
 
-def task_mean_ci(
+def subject_bootstrap_ci(
     scores: Scores, *, reps: int = 2000, confidence: float = 0.95, seed: int = 0
 ) -> tuple[float, float, float]:
-    """``(mean over tasks of each task's mean, low, high)``: every task weighs the same whatever its number of seeds
-    (leave-one-subject-out folds with unequal seeds done); the interval resamples each task's seeds on their own."""
-    arrays = _as_arrays(scores)
+    """``(mean over groups of each group's mean, low, high)`` for scores grouped by held-out subject (leave-one-subject-
+    out folds): every group weighs the same whatever its number of seeds. Two-level bootstrap: each replicate draws
+    the groups with replacement, then each drawn group's seeds with replacement, so the interval covers a new subject
+    as well as a new seed (with one seed per fold it is the bootstrap over subjects). One group: seeds only."""
+    arrays = list(_as_arrays(scores).values())
     rng = np.random.default_rng(seed)
-    point = float(np.mean([v.mean() for v in arrays.values()]))
-    values = np.array(
-        [np.mean([v[rng.integers(0, v.size, v.size)].mean() for v in arrays.values()]) for _ in range(reps)]
-    )
-    tail = 100 * (1 - confidence) / 2
-    low, high = np.percentile(values, [tail, 100 - tail])
-    return point, float(low), float(high)
+    point = float(np.mean([v.mean() for v in arrays]))
+    values = np.empty(reps)
+    for r in range(reps):
+        groups = rng.integers(0, len(arrays), len(arrays)) if len(arrays) > 1 else [0]
+        values[r] = np.mean([arrays[g][rng.integers(0, arrays[g].size, arrays[g].size)].mean() for g in groups])
+    return (point, *_percentile_interval(values, confidence))
 
 
 def _prob_greater(x: np.ndarray, y: np.ndarray) -> float:
