@@ -1,6 +1,7 @@
 """Exploration bonuses (NoveltyBonus, CuriosityModel, R_VL) and the reward mixer (paper App. G.1, G.2, A.5)."""
 
 import math
+from pathlib import Path
 
 import pytest
 import torch
@@ -9,8 +10,11 @@ from torchrl.data import Categorical, Composite, Unbounded
 from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.utils import check_env_specs, step_mdp
 
+from freamer_rl.errors import ConfigError
 from freamer_rl.machinery.exploration import CuriosityModel, NoveltyBonus, next_step_valid, vision_language_similarity
 from freamer_rl.machinery.reward_mixer import RewardMixer
+from freamer_rl.machinery.shaping import RewardShaper
+from freamer_rl.trainers.registry import load_recipe
 
 torch.set_num_threads(1)
 
@@ -338,3 +342,32 @@ def test_time_penalty_matches_appendix_a5():
     td = TensorDict({"next": {"reward": torch.zeros(1, 145, 1)}}, batch_size=[1, 145])
     mixer(td, success_rate=0.295)
     assert td["next", "shaped_reward"].sum().item() == pytest.approx(-9.39, abs=5e-3)
+
+
+@pytest.mark.parametrize("scale", [0.1, 1.0, 2.5])
+def test_reward_mixer_scale_multiplies_the_whole_shaped_reward(scale):
+    td = _mix_batch()
+    RewardMixer({"novelty": (("next", "novelty_bonus"), 2.0)}, adaptive=False, time_penalty=0.05, scale=scale)(td, 0.0)
+    want = [scale * (r + 2.0 * b - 0.05) for r, b in zip([0.0, 0.0, 0.9], [0.5, 0.0, 0.2])]
+    assert td["next", "shaped_reward"].reshape(-1).tolist() == pytest.approx(want)
+    assert td["next", "reward"].reshape(-1).tolist() == pytest.approx([0.0, 0.0, 0.9])  # the logged reward stays
+    for bad in (0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="scale must be a finite number > 0"):
+            RewardMixer(scale=bad)
+
+
+@pytest.mark.parametrize("recipe", ["gym/cartpole.yaml", "baselines/ppo_mlp_cartpole.yaml"])
+def test_shaping_reward_scale_turns_the_shaper_on_for_both_trainers(recipe):
+    path = Path(__file__).resolve().parents[2] / "recipes" / recipe
+    _, cfg = load_recipe(path, ["shaping.reward_scale=0.1"])
+    shaper = RewardShaper(cfg, [], 0, 0, torch.device("cpu"))
+    assert shaper.active and shaper.mixer.scale == 0.1
+    td = TensorDict(
+        {"next": {"reward": torch.ones(2, 3, 1), "done": torch.zeros(2, 3, 1, dtype=torch.bool)}}, batch_size=[2, 3]
+    )
+    td["next", "terminated"] = td["next", "done"].clone()
+    shaper(td, 0.0)
+    assert torch.allclose(td["next", "shaped_reward"], torch.full((2, 3, 1), 0.1))
+    assert not RewardShaper(load_recipe(path, [])[1], [], 0, 0, torch.device("cpu")).active  # default: off
+    with pytest.raises(ConfigError, match="shaping.reward_scale"):
+        load_recipe(path, ["shaping.reward_scale=0"])

@@ -38,7 +38,7 @@ class NoveltyConfig:
 class ShapingConfig:
     """Reward terms added to the env reward for PPO (App. G.1-G.2, A.5). Success is still judged on the env reward.
 
-    shaped = r_env + decay * (sum of weight * term) - time_penalty * (1 + success_rate), with decay =
+    shaped = reward_scale * (r_env + decay * (sum of weight * term) - time_penalty * (1 + success_rate)), with decay =
     max(1 - 1.25 * success_rate, 0) when ``adaptive`` (G.2), else 1.
     """
 
@@ -49,6 +49,9 @@ class ShapingConfig:
     curiosity_lr: float = 1e-4  # the curiosity forward model's own Adam (eps 1e-5, grad clip 1.0)
     novelty: NoveltyConfig = field(default_factory=NoveltyConfig)
     time_penalty: float = 0.0  # alpha of P_time (App. A.5; 0.02 recommended with the language reward)
+    # the factor on the reward PPO's GAE reads (not on the logged return): smaller value targets for a critic that
+    # shares the policy's trunk (recipes/gym/cartpole.yaml says what it measured)
+    reward_scale: float = 1.0
 
 
 @dataclass
@@ -83,6 +86,7 @@ MACHINERY_RANGES: dict[str, Range] = {
     "shaping.novelty.weight": (NON_NEGATIVE, ">= 0"),
     "shaping.novelty.alpha": (NON_NEGATIVE, ">= 0"),
     "shaping.time_penalty": (NON_NEGATIVE, ">= 0"),
+    "shaping.reward_scale": (POSITIVE, "> 0"),
     "success_buffer.mix": (lambda v: 0 < v < 1, "in (0, 1)"),
     "success_buffer.rho_clip": (POSITIVE, "> 0"),
     "ogm.alpha": (POSITIVE, "> 0"),

@@ -3,11 +3,13 @@
 ``("next", "reward")`` (the env's, on which success is judged) is never modified; :class:`RewardMixer` writes
 ``("next", "shaped_reward")`` and the trainer's GAE reads it (``GAE.set_keys(reward="shaped_reward")``)::
 
-    r_shaped = r_env + decay * sum_i w_i * term_i - P                                (G.1 + G.2 + A.5)
+    r_shaped = scale * (r_env + decay * sum_i w_i * term_i - P)                      (G.1 + G.2 + A.5)
     decay    = max(1 - 1.25 * S, 0)   (adaptive=True, G.2)   or 1   (adaptive=False)
     P        = time_penalty * (1 + rho / 100),  rho = 100 * S  (the success rate in percent)
 
-``P`` is the per-step penalty: A.5's ``P_time = alpha (1 + rho/100) t`` is what it adds up to after ``t`` steps
+``scale`` (``shaping.reward_scale``, 1 by default) sets the size of the returns the critic regresses on: with a
+critic that shares the policy's trunk, returns of ~100 (CartPole) make the value loss's gradient dominate the trunk's
+after gradient clipping. ``P`` is the per-step penalty: A.5's ``P_time = alpha (1 + rho/100) t`` is what it adds up to after ``t`` steps
 (alpha = 0.05, rho = 29.5 %, t = 145 gives 9.39, the figure quoted in A.5; see
 :meth:`RewardMixer.accumulated_time_penalty`).
 """
@@ -54,6 +56,7 @@ class RewardMixer(nn.Module):
             ``{"novelty": (("next", "novelty_bonus"), 0.1)}``. A zero weight keeps the term in the diagnostics.
         adaptive: G.2's decay ``max(1 - 1.25 S, 0)`` of the bonus sum; False: decay 1.
         time_penalty: A.5's ``alpha`` (0 turns the penalty off; the paper's 0.05, or 0.02 as A.5 recommends).
+        scale: the factor on the whole shaped reward (finite, > 0; 1 leaves it as it is).
         out_key: shortcut for ``set_keys(shaped_reward=...)``.
 
     Forward: ``mixer(td, success_rate)`` writes the output key and returns ``td``. ``success_rate`` is the recent
@@ -62,7 +65,8 @@ class RewardMixer(nn.Module):
 
     Raises:
         KeyError: a term's key (or the reward) is missing, naming the key and what writes it.
-        ValueError: a non-finite weight, a negative time penalty, or a success rate outside ``[0, 1]``.
+        ValueError: a non-finite weight, a negative time penalty, a scale that is not finite and > 0, or a success
+            rate outside ``[0, 1]``.
     """
 
     @dataclass
@@ -80,6 +84,7 @@ class RewardMixer(nn.Module):
         *,
         adaptive: bool = True,
         time_penalty: float = 0.0,
+        scale: float = 1.0,
         out_key: NestedKey | None = None,
     ) -> None:
         super().__init__()
@@ -90,8 +95,11 @@ class RewardMixer(nn.Module):
             self.terms[name] = (key, float(weight))
         if not (math.isfinite(time_penalty) and time_penalty >= 0):
             raise ValueError(f"RewardMixer: time_penalty must be a finite number >= 0, got {time_penalty!r}")
+        if not (math.isfinite(scale) and scale > 0):
+            raise ValueError(f"RewardMixer: scale must be a finite number > 0, got {scale!r}")
         self.adaptive = bool(adaptive)
         self.time_penalty = float(time_penalty)
+        self.scale = float(scale)
         self.tensor_keys = self._AcceptedKeys()
         if out_key is not None:
             self.set_keys(shaped_reward=out_key)
@@ -165,7 +173,7 @@ class RewardMixer(nn.Module):
             term = term.to(reward.dtype)
             bonus = bonus + weight * term
             diag[f"bonus_{name}"] = term.detach().mean()
-        td.set(keys.shaped_reward, reward + decay * bonus - penalty)
+        td.set(keys.shaped_reward, self.scale * (reward + decay * bonus - penalty))
         diag["shaping_decay"] = torch.tensor(decay)
         diag["time_penalty"] = torch.tensor(penalty)
         self._diagnostics = diag
@@ -177,4 +185,4 @@ class RewardMixer(nn.Module):
         return {k: float(v) for k, v in self._diagnostics.items()}
 
     def extra_repr(self) -> str:
-        return f"terms={self.terms}, adaptive={self.adaptive}, time_penalty={self.time_penalty}"
+        return f"terms={self.terms}, adaptive={self.adaptive}, time_penalty={self.time_penalty}, scale={self.scale}"

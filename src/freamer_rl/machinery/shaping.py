@@ -79,9 +79,13 @@ class RewardShaper:
             self.max_grad_norm = CURIOSITY_GRAD_CLIP
             self.step_stats = StepStats("curiosity")
             terms["curiosity"] = (("next", "curiosity_reward"), s.curiosity)
-        self.active = bool(terms) or s.time_penalty > 0
+        self.active = bool(terms) or s.time_penalty > 0 or s.reward_scale != 1.0
         self.mixer = RewardMixer(
-            terms, adaptive=s.adaptive, time_penalty=s.time_penalty, out_key=("next", SHAPED_REWARD)
+            terms,
+            adaptive=s.adaptive,
+            time_penalty=s.time_penalty,
+            scale=s.reward_scale,
+            out_key=("next", SHAPED_REWARD),
         )
 
     def __call__(self, data: TensorDictBase, success_rate: float) -> dict[str, float]:
