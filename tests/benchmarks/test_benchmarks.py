@@ -54,6 +54,7 @@ def test_gym_ppo_mlp_recipe_differs_from_freamer_only_in_the_network(task):
     fields = [f for f in vars(freamer.ppo) if f != "sequence_length"]  # PPO-MLP steps need no sequence layout
     assert {f: getattr(mlp.ppo, f) for f in fields} == {f: getattr(freamer.ppo, f) for f in fields}
     assert vars(mlp.optim) == vars(freamer.optim)
+    assert mlp.shaping.reward_scale == freamer.shaping.reward_scale  # the same value targets
     assert mlp.run.total_frames == freamer.run.total_frames
 
 
@@ -182,7 +183,7 @@ def test_report_adds_the_health_table_from_the_runs_summaries(tmp_path):
 
 def test_report_adds_the_loso_overall_row_per_encoder(tmp_path):
     """Leave-one-subject-out: per encoder, the reward over the folds (the mean of the fold means, whatever the seeds
-    done per fold) with a stratified interval inside the folds' range, and each fold's mean."""
+    done per fold) with a two-level bootstrap interval inside the folds' range, and each fold's mean."""
     folds = {("mlp", 101): [80.0, 82.0], ("mlp", 102): [70.0], ("foundation", 101): [90.0, 92.0, 94.0]}
     folds[("foundation", 102)] = [60.0, 62.0]
     records = []
@@ -202,8 +203,9 @@ def test_report_adds_the_loso_overall_row_per_encoder(tmp_path):
         if line.startswith("| ") and not line.startswith("| encoder")
     }
     assert set(rows) == {"mlp", "foundation"}
-    enc, n_folds, runs, reward, per_fold = rows["mlp"]
+    enc, n_folds, runs, reward, rule, oracle, vs_rule, of_oracle, at_rule, per_fold = rows["mlp"]
     assert (n_folds, runs, per_fold) == ("2", "3", "101: 81.0, 102: 70.0")
+    assert (rule, oracle, vs_rule, of_oracle, at_rule) == ("", "", "", "", "")  # these runs record no references
     point, bounds = reward.split(" [")
     low, high = (float(v) for v in bounds.rstrip("]").split(", "))
     assert float(point) == 75.5  # (81 + 70) / 2, not the pooled (80 + 82 + 70) / 3

@@ -368,6 +368,7 @@ def test_shaping_reward_scale_turns_the_shaper_on_for_both_trainers(recipe):
     td["next", "terminated"] = td["next", "done"].clone()
     shaper(td, 0.0)
     assert torch.allclose(td["next", "shaped_reward"], torch.full((2, 3, 1), 0.1))
-    assert not RewardShaper(load_recipe(path, [])[1], [], 0, 0, torch.device("cpu")).active  # default: off
+    unscaled = load_recipe(path, ["shaping.reward_scale=1.0"])[1]
+    assert not RewardShaper(unscaled, [], 0, 0, torch.device("cpu")).active  # 1.0 and nothing else: no shaping
     with pytest.raises(ConfigError, match="shaping.reward_scale"):
         load_recipe(path, ["shaping.reward_scale=0"])

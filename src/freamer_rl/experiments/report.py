@@ -535,8 +535,12 @@ def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict
     rows (with each run's ``rows``)."""
     output.mkdir(parents=True, exist_ok=True)
     results = [read_run(rec) for rec in records]
-    health = [k for k, _, _ in HEALTH_METRICS if any(r.get(k) is not None for r in results)]
-    health += [*HEALTH_REFERENCES, "params_encoder", "encoder", "eval_subjects"] if health else []
+    health = [
+        k
+        for k in (*(k for k, _, _ in HEALTH_METRICS), *HEALTH_REFERENCES)
+        if any(r.get(k) is not None for r in results)
+    ]
+    health += ["params_encoder", "encoder", "eval_subjects"] if health else []
     write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS[:-2] + health + RUN_FIELDS[-2:])
     rows = summary_rows(results)
     write_rows_csv(output / "summary.csv", [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
