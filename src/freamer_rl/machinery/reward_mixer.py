@@ -7,11 +7,13 @@
     decay    = max(1 - 1.25 * S, 0)   (adaptive=True, G.2)   or 1   (adaptive=False)
     P        = time_penalty * (1 + rho / 100),  rho = 100 * S  (the success rate in percent)
 
-``scale`` (``shaping.reward_scale``, 1 by default) sets the size of the returns the critic regresses on: with a
-critic that shares the policy's trunk, returns of ~100 (CartPole) make the value loss's gradient dominate the trunk's
-after gradient clipping. ``P`` is the per-step penalty: A.5's ``P_time = alpha (1 + rho/100) t`` is what it adds up to after ``t`` steps
+``P`` is the per-step penalty: A.5's ``P_time = alpha (1 + rho/100) t`` is what it adds up to after ``t`` steps
 (alpha = 0.05, rho = 29.5 %, t = 145 gives 9.39, the figure quoted in A.5; see
 :meth:`RewardMixer.accumulated_time_penalty`).
+
+``scale`` (``shaping.reward_scale``, 1 by default) sets the size of the returns the critic regresses on: with a
+critic that shares the policy's trunk, returns of ~100 (CartPole) let the value loss's gradient crowd out the
+policy's after gradient clipping.
 """
 
 from __future__ import annotations
