@@ -2,8 +2,11 @@
 
     python benchmarks/throughput_benchmark.py --suite crafter --rounds 2 --batches 2 --threads 1 2 --out /tmp/tpc
 
-Per round, at each ``--threads`` value t (and each ``--num-envs`` n, default the recipe's ``env.num_envs``), four
-measurements, each in its own subprocess through the main script's job runner, one at a time:
+Per round, at each ``--threads`` value t (and each ``--num-envs`` n, default the recipe's ``env.num_envs``), six
+measurements, each in its own subprocess through the main script's job runner, one at a time (the recipes generate
+the next worlds in a worker process, ``env.reset_workers: 1``; the ``_inline`` twins of the adapter env and of
+FreamerV1 run the same recipe with ``env.reset_workers=0``, crafter's reset in the env's process, so the report
+shows what the prefetching buys, round by round):
 
 * ``raw_env``: one ``crafter.Env(seed=...)`` (crafter's defaults: the benchmark's 64x64 world, 9x9 view, 64x64
   frames, reward on) with uniform random actions from numpy. The first reset (a whole world) is untimed, like the
@@ -37,18 +40,29 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 FREAMER_RECIPE = ROOT / "recipes" / "crafter_cpu.yaml"
 PPO_CNN_RECIPE = ROOT / "recipes" / "baselines" / "ppo_cnn_crafter.yaml"
-METHODS = ("raw_env", "adapter_env", "freamer", "ppo_cnn")
-ENV_METHODS = ("raw_env", "adapter_env")
+METHODS = ("raw_env", "adapter_env_inline", "adapter_env", "freamer_inline", "freamer", "ppo_cnn")
+ENV_METHODS = ("raw_env", "adapter_env_inline", "adapter_env")
+#: the ``_inline`` measurements: the recipe with crafter's own reset in the env's process (env.reset_workers=0)
+INLINE = {"adapter_env_inline": "adapter_env", "freamer_inline": "freamer"}
 NAMES = {
     "raw_env": "raw crafter.Env (1 env)",
+    "adapter_env_inline": "adapter env (random actions), resets inline",
     "adapter_env": "adapter env (random actions)",
+    "freamer_inline": "FreamerV1 (crafter_cpu), resets inline",
     "freamer": "FreamerV1 (crafter_cpu)",
     "ppo_cnn": "PPO-CNN (ppo_cnn_crafter)",
 }
 #: ratio pairs for ``summarise``: method -> the methods whose ``REFERENCE`` metric of the same round divides it
-PAIRS = {"adapter_env": ("raw_env",), "freamer": ("raw_env", "adapter_env"), "ppo_cnn": ("raw_env", "adapter_env")}
+PAIRS = {
+    "adapter_env_inline": ("raw_env",),
+    "adapter_env": ("raw_env",),
+    "freamer_inline": ("raw_env", "adapter_env_inline"),
+    "freamer": ("raw_env", "adapter_env"),
+    "ppo_cnn": ("raw_env", "adapter_env"),
+}
 REFERENCE = "collect_fps"  # an env measurement's steps/s
-RATIO_FIELDS = [f"{m}_vs_raw_env" for m in ("collect", "update", "overall")] + ["collect_vs_adapter_env"]
+RATIO_FIELDS = [f"{m}_vs_raw_env" for m in ("collect", "update", "overall")]
+RATIO_FIELDS += ["collect_vs_adapter_env", "collect_vs_adapter_env_inline"]
 ROUND_EXTRA = ("step_s", "reset_s", "resets")  # the raw env's split of its time, in rounds.csv
 CSV_FIELDS = [
     "threads",
@@ -139,7 +153,7 @@ def time_adapter_env(spec: dict) -> dict:
     return out
 
 
-TIMERS = {"raw_env": time_raw_env, "adapter_env": time_adapter_env}
+TIMERS = {"raw_env": time_raw_env, "adapter_env": time_adapter_env, "adapter_env_inline": time_adapter_env}
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -163,14 +177,12 @@ def plan(args, fixed: list[str], valid_configs: Callable, current_code: str) -> 
             "freamer": {**freamer, "tree": str(ROOT), "patch_envs": False},
             "ppo_cnn": {**common, "recipe": str(PPO_CNN_RECIPE), "overrides": ppo_overrides},
         }
+        for inline, base in INLINE.items():  # the same measurement with world generation on the critical path
+            specs[inline] = {**specs[base], "overrides": [*specs[base]["overrides"], "env.reset_workers=0"]}
         for m in METHODS:
-            jobs.append(((t, n, m), {**specs[m], "method": m}, ROOT if m == "freamer" else None))
-    codes = {
-        "raw_env": f"crafter {_crafter_version()}",
-        "adapter_env": current_code,
-        "freamer": current_code,
-        "ppo_cnn": "ppo_baseline",
-    }
+            jobs.append(((t, n, m), {**specs[m], "method": m}, ROOT if m.startswith("freamer") else None))
+    codes = {"raw_env": f"crafter {_crafter_version()}", "ppo_cnn": "ppo_baseline"}
+    codes.update({m: current_code for m in (*INLINE, *INLINE.values())})
     return dict(
         configs=configs, methods=list(METHODS), codes=codes, notes=notes, jobs=jobs, frames_per_batch=fpb, recipe=recipe
     )
@@ -191,6 +203,28 @@ def _raw_env_notes(rounds: list[dict]) -> list[str]:
     return notes
 
 
+def _prefetch_notes(rounds: list[dict], fmt: Callable) -> list[str]:
+    """What generating worlds ahead (``env.reset_workers``, the recipes' setting) buys: per round and thread count,
+    each measurement's rate over its ``_inline`` twin's (collection for the env, overall for FreamerV1)."""
+    notes = []
+    ok = [r for r in rounds if not r.get("error")]
+    for t in sorted({r["threads"] for r in ok}):
+        by = {(r["round"], r["num_envs"], r["method"]): r for r in ok if r["threads"] == t}
+        for inline, base in INLINE.items():
+            metric, what = ("collect_fps", "collection") if base in ENV_METHODS else ("overall_fps", "overall")
+            ratios = [
+                by[(rnd, n, base)][metric] / r[metric]
+                for (rnd, n, m), r in by.items()
+                if m == inline and (rnd, n, base) in by
+            ]
+            if ratios:
+                notes.append(
+                    f"{NAMES[base]}, {t} thread(s): {what} fps {fmt(ratios, 2)}x that with "
+                    "resets inline (env.reset_workers=0), per round."
+                )
+    return notes
+
+
 def report_lines(rows: list[dict], rounds: list[dict], meta: dict, fmt: Callable) -> tuple[list[str], list[str]]:
     """The Markdown tables of the Crafter suite and its notes (``fmt(values, digits)`` formats a mean (min-max)
     cell)."""
@@ -201,8 +235,9 @@ def report_lines(rows: list[dict], rounds: list[dict], meta: dict, fmt: Callable
         f"{meta['load_end']} at the end.",
         f"Code: {meta['codes']['freamer']}; {meta['codes']['raw_env']}. FreamerV1 = {meta['recipe']}, PPO-CNN = "
         f"{PPO_CNN_RECIPE.relative_to(ROOT)} with FreamerV1's ppo.frames_per_batch and env.num_envs.",
-        f"{meta['rounds']} round(s), interleaved (each round: at each thread count, raw env / adapter env / FreamerV1 "
-        f"/ PPO-CNN, each in its own subprocess); per measurement {meta['warmup']} warm-up batch(es) + "
+        f"{meta['rounds']} round(s), interleaved (each round: at each thread count, raw env / adapter env and "
+        f"FreamerV1, each with resets inline and with the recipe's worlds generated ahead / PPO-CNN, each in its own "
+        f"subprocess); per measurement {meta['warmup']} warm-up batch(es) + "
         f"{meta['batches']} timed batches of {meta['frames_per_batch']} frames (raw env: the same number of steps "
         f"after its first reset). Overrides: {meta['overrides'] or 'none'}.",
         "Cells: mean (min-max) over rounds. Env rows: env steps/s with random actions, resets included. Update = "
@@ -232,6 +267,6 @@ def report_lines(rows: list[dict], rounds: list[dict], meta: dict, fmt: Callable
         env = r["method"] in ENV_METHODS
         cells = [fmt(r.get("_collect_vs_raw_env") or [], 2)]
         cells += ["-" if env else fmt(r.get(f"_{m}_vs_raw_env") or [], 2) for m in ("update", "overall")]
-        cells.append("-" if env else fmt(r.get("_collect_vs_adapter_env") or [], 2))
+        cells.append("-" if env else fmt(r.get(f"_collect_vs_{PAIRS[r['method']][1]}") or [], 2))
         lines.append(f"| {r['threads']} | {r['num_envs']} | {NAMES[r['method']]} | " + " | ".join(cells) + " |")
-    return lines, _raw_env_notes(rounds)
+    return lines, _raw_env_notes(rounds) + _prefetch_notes(rounds, fmt)

@@ -50,7 +50,10 @@ a property of crafter itself (danijar/crafter#36), shared by the raw env, that t
 
 Cost (one core of a busy 2-core machine): a reset generates a whole 64x64 world, about 0.5 s; a step takes about
 0.75 ms in crafter plus under 0.1 ms for this adapter and TorchRL's step bookkeeping. Early in training (a random
-agent dies after ~150-200 steps) resets take most of the time: use several workers.
+agent dies after ~150-200 steps) resets take most of the time. ``reset_workers=k`` (``env.reset_workers`` in a
+recipe; the Crafter recipes use 1) generates each env's next world in a pool of ``k`` processes while the current
+episode runs (:mod:`freamer_rl_envs.crafter_worlds`): the same worlds, off the critical path. The pool is started
+with ``spawn``, so a script that builds such an env needs the ``if __name__ == "__main__":`` guard.
 
 Batched use needs picklable factories (``ParallelEnv`` spawns workers)::
 
@@ -77,6 +80,7 @@ from torchrl.envs import EnvBase
 
 from freamer_rl.errors import EnvSetupError
 from freamer_rl.run.env_registry import EnvAdapter
+from freamer_rl_envs.crafter_worlds import WorldPrefetcher, check_crafter_internals, install_world
 from freamer_rl_envs.single_env import finish_td, unchanged_reset
 
 try:
@@ -202,6 +206,9 @@ class CrafterEnv(EnvBase):
             ``[height, width, 3]``); 64 in the benchmark.
         area: world size in cells, an int or ``(x, y)`` (64 in the benchmark).
         view: cells shown, an int or ``(x, y)`` (9 in the benchmark: 9 x 7 of world above 9 x 2 of inventory).
+        reset_workers: > 0: the next episode's world is generated ahead in a pool of this many processes (shared by
+            every Crafter env of the process; :mod:`freamer_rl_envs.crafter_worlds`), so a reset does not wait for
+            world generation; the worlds are the same. 0: crafter's own reset, inline.
         device: device of the output tensors.
 
     Raises:
@@ -221,6 +228,7 @@ class CrafterEnv(EnvBase):
         size: int | tuple[int, int] = 64,
         area: int | tuple[int, int] = 64,
         view: int | tuple[int, int] = 9,
+        reset_workers: int = 0,
         device: torch.device | str = "cpu",
     ) -> None:
         self._crafter = _require_crafter()
@@ -229,6 +237,8 @@ class CrafterEnv(EnvBase):
             raise ValueError(f"reward_history: expected an integer >= 0, got {reward_history!r}")
         if int(length) != length or length < 1:
             raise ValueError(f"length: expected an integer >= 1, got {length!r}")
+        if int(reset_workers) != reset_workers or reset_workers < 0:
+            raise ValueError(f"reset_workers: expected an integer >= 0, got {reset_workers!r}")
         super().__init__(device=device, batch_size=torch.Size([]))
         self.env_id = env_id
         self.reward_history = int(reward_history)
@@ -242,6 +252,7 @@ class CrafterEnv(EnvBase):
         }
         self._out_device = torch.device(self.device) if self.device is not None else torch.device("cpu")
         self._make_specs()
+        self._worlds = WorldPrefetcher(reset_workers, self._env_kwargs) if reset_workers else None
 
         # mutable state: the crafter env is built at the first reset (and again at the reset after a set_seed)
         self._env: Any = None
@@ -307,7 +318,9 @@ class CrafterEnv(EnvBase):
                 seed = secrets.randbelow(_MAX_SEED)
                 logger.debug("%s: unseeded, drew crafter seed %d", self.env_id, seed)
             self._env = self._crafter.Env(seed=seed, **self._env_kwargs)
-        pixels = self._env.reset()
+            if self._worlds is not None:
+                check_crafter_internals(self._env)
+        pixels = self._reset_world()
         if self.reward_history:
             self._history = [0.0] * self.reward_history
         # crafter's reset returns no info: a new player holds the initial inventory and no achievements
@@ -318,6 +331,18 @@ class CrafterEnv(EnvBase):
         td = self._finish(out)
         self._last_obs = td
         return td
+
+    def _reset_world(self) -> np.ndarray:
+        """Crafter's reset, or with ``reset_workers`` the prefetched world of the next episode (then the one after
+        it is requested); returns the first frame."""
+        env = self._env
+        if self._worlds is None:
+            return env.reset()
+        episode = env._episode + 1
+        payload = self._worlds.take(env._seed, episode)
+        pixels = env.reset() if payload is None else install_world(env, payload, episode)
+        self._worlds.request(env._seed, episode + 1)
+        return pixels
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         pixels, reward, done, info = self._env.step(int(tensordict.get("action")))
@@ -344,23 +369,28 @@ class CrafterEnv(EnvBase):
     def _set_seed(self, seed: int | None) -> None:
         """Build a fresh ``crafter.Env(seed=seed)`` at the next reset (``None`` keeps the current one going)."""
         self._pending_seed = None if seed is None else int(seed)
+        if self._worlds is not None and seed is not None:
+            self._worlds.request(self._pending_seed, 1)  # the first world of the new seed, ahead of the reset
 
     def close(self, *, raise_if_closed: bool = True) -> None:
         self.__dict__["_env"] = None  # crafter.Env holds no OS resources
+        if self.__dict__.get("_worlds") is not None:
+            self._worlds.cancel()
         super().close(raise_if_closed=raise_if_closed)
 
     def __repr__(self) -> str:
         kw = self._env_kwargs
         return (
             f"{type(self).__name__}(env_id={self.env_id!r}, reward_history={self.reward_history}, "
-            f"length={self.length}, size={kw['size']}, area={kw['area']}, view={kw['view']}, device={self.device})"
+            f"length={self.length}, size={kw['size']}, area={kw['area']}, view={kw['view']}, "
+            f"reset_workers={self._worlds.workers if self._worlds else 0}, device={self.device})"
         )
 
 
 def make_crafter_env(env_id: str = DEFAULT_ENV_ID, **options: Any) -> EnvBase:
     """Build one unbatched :class:`CrafterEnv` (the ``crafter`` entry point of the ``freamer_rl.envs`` group);
     ``options`` are its keyword arguments (``seed``, ``reward_history``, ``length``, ``size``, ``area``, ``view``,
-    ``device``).
+    ``reset_workers``, ``device``).
 
     Picklable through ``functools.partial(make_crafter_env, env_id, ...)``, so it can feed ``SerialEnv``,
     ``ParallelEnv`` (wrap it in ``EnvCreator``) and TorchRL collectors.
@@ -374,7 +404,7 @@ def make_crafter_env(env_id: str = DEFAULT_ENV_ID, **options: Any) -> EnvBase:
 
 def _crafter_options(cfg: Any) -> dict[str, Any]:
     """Adapter options implied by a trainer's config (the benchmark's world otherwise)."""
-    return {"reward_history": cfg.env.reward_history}
+    return {"reward_history": cfg.env.reward_history, "reset_workers": cfg.env.reset_workers}
 
 
 #: The ``crafter`` entry point of the ``freamer_rl.envs`` group. No success rule: Crafter has no single goal (see

@@ -132,15 +132,18 @@ def test_crafter_suite_writes_every_row_and_ratio(tmp_path, monkeypatch):
     assert raw > 0 and float(rows["adapter_env"]["collect_vs_raw_env"]) > 0
     for m in tc.ENV_METHODS:
         assert rows[m]["update_fps_mean"] == rows[m]["overall_fps_mean"] == ""  # an env has no update
-    for m in ("freamer", "ppo_cnn"):
-        r = {k: float(v) for k, v in rows[m].items() if k.endswith(("_mean", "_vs_raw_env", "_vs_adapter_env"))}
-        assert all(v > 0 for v in r.values()) and len(r) == 3 + len(tc.RATIO_FIELDS)
+    for m in ("freamer_inline", "freamer", "ppo_cnn"):
+        adapter = tc.PAIRS[m][1]  # the adapter env of the same reset setting
+        keys = ("_mean", "_vs_raw_env", f"_vs_{adapter}")
+        r = {k: float(v) for k, v in rows[m].items() if k.endswith(keys) and v != ""}
+        assert all(v > 0 for v in r.values()) and len(r) == 3 + 3 + 1
         # overall = frames / (collection + update): below both parts' rates
         assert r["overall_fps_mean"] < min(r["collect_fps_mean"], r["update_fps_mean"])
         # one round: each ratio is the rate over the raw env's (or the adapter env's) steps/s of that round
         assert r["overall_vs_raw_env"] == pytest.approx(r["overall_fps_mean"] / raw, rel=2e-3)
-        env = float(rows["adapter_env"]["collect_fps_mean"])
-        assert r["collect_vs_adapter_env"] == pytest.approx(r["collect_fps_mean"] / env, rel=2e-3)
+        env = float(rows[adapter]["collect_fps_mean"])
+        assert r[f"collect_vs_{adapter}"] == pytest.approx(r["collect_fps_mean"] / env, rel=2e-3)
+    assert "FreamerV1 (crafter_cpu), 1 thread(s): overall fps" in text  # against its resets-inline twin
     with (tmp_path / "rounds.csv").open() as f:
         rounds = list(csv.DictReader(f))
     assert [r["method"] for r in rounds] == list(tc.METHODS) and all(r["error"] == "" for r in rounds)
@@ -154,8 +157,11 @@ def test_crafter_ratios_pair_rounds_against_the_raw_env(tmp_path):
         rounds.append({"round": rnd, "method": "raw_env", "collect_fps": raw, "frames": 10, "step_s": 1.0})
         rounds[-1].update(reset_s=1.0, resets=2)
         rounds.append({"round": rnd, "method": "adapter_env", "collect_fps": env})
+        rounds.append({"round": rnd, "method": "adapter_env_inline", "collect_fps": env / 2})
         for m in ("freamer", "ppo_cnn"):
             rounds.append({"round": rnd, "method": m, "collect_fps": fps, "update_fps": 2 * fps, "overall_fps": fps})
+        inline = {"collect_fps": fps / 2, "update_fps": 2 * fps, "overall_fps": fps / (1 + rnd)}
+        rounds.append({"round": rnd, "method": "freamer_inline", **inline})
     for r in rounds:
         r.update(threads=1, num_envs=8)
     rows = tb.summarise(rounds, [(1, 8)], list(tc.METHODS), dict.fromkeys(tc.METHODS, "x"), tc.PAIRS, tc.REFERENCE)
@@ -168,3 +174,7 @@ def test_crafter_ratios_pair_rounds_against_the_raw_env(tmp_path):
     meta.update(codes=dict.fromkeys(tc.METHODS, "x"), warmup=1, frames_per_batch=64, overrides="", command="x")
     text = tb.write_crafter_report(rows, rounds, [], tmp_path, {**meta, "recipe": "r.yaml"})
     assert "0.30 (0.20-0.40)" in text and "100.00 ms per step, 0.50 s per reset, 4 resets in 20 steps" in text
+    assert by["freamer_inline"]["collect_vs_adapter_env_inline"] == pytest.approx((0.4 + 0.8) / 2)
+    # the prefetching measurement over its inline twin, round by round: overall 40/40 and 40/20
+    assert "FreamerV1 (crafter_cpu), 1 thread(s): overall fps 1.50 (1.00-2.00)x" in text
+    assert "adapter env (random actions), 1 thread(s): collection fps 2.00 (2.00-2.00)x" in text

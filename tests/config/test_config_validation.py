@@ -84,6 +84,7 @@ BAD = [
     (["model.vector.hidden=0"], "model.vector.hidden"),
     (["env.num_envs=0"], "env.num_envs"),
     (["env.reward_history=-1"], "env.reward_history"),
+    (["env.reset_workers=-1"], "env.reset_workers"),
     (["env.reward_history=0"], "env.reward_history"),  # the default modalities include reward
     (["env.max_mission_tokens=0"], "env.max_mission_tokens"),
     (["collector.num_collectors=0"], "collector.num_collectors"),

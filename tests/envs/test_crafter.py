@@ -182,7 +182,7 @@ def test_parallel_env(start_method):
 def test_adapter_options_and_no_success():
     cfg = FreamerConfig()
     cfg.env.reward_history = 5
-    assert ADAPTER.options(cfg) == {"reward_history": 5}
+    assert ADAPTER.options(cfg) == {"reward_history": 5, "reset_workers": 0}
     assert ADAPTER.success is None and ADAPTER.make_env is make_crafter_env
 
 

@@ -19,6 +19,7 @@ from freamer_rl.trainers.registry import TRAINERS, load_config, resolve_checkpoi
 ROOT = Path(__file__).resolve().parents[2]
 MLP_RECIPE = ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml"
 CNN_RECIPE = ROOT / "recipes" / "baselines" / "ppo_cnn_crafter.yaml"
+LSTM_CRAFTER_RECIPE = ROOT / "recipes" / "baselines" / "ppo_lstm_crafter.yaml"
 
 
 def _specs():
@@ -120,7 +121,10 @@ def test_ppo_mlp_learns_empty_5x5(tmp_path):
     assert result["episodes"] == 8 and result["success_rate"] > 0.5
 
 
-def test_ppo_cnn_on_crafter_logs_the_score_and_resumes(tmp_path):
+@pytest.mark.parametrize("recipe", [CNN_RECIPE, LSTM_CRAFTER_RECIPE], ids=["ppo_cnn", "ppo_lstm"])
+def test_ppo_on_crafter_logs_the_score_and_resumes(tmp_path, recipe):
+    """Both Crafter baselines as their recipes build them (worlds generated ahead in a worker process, the LSTM's
+    pixels + inventory + reward history), tiny: train, resume, the score in the log, parameter rows."""
     pytest.importorskip("crafter")
     tiny = [
         "env.num_envs=2",
@@ -133,14 +137,15 @@ def test_ppo_cnn_on_crafter_logs_the_score_and_resumes(tmp_path):
         "logging.progress_bar=false",
         "logging.checkpoint_every_frames=64",
     ]
-    TRAINERS["ppo_baseline"].train(load_config(CNN_RECIPE, [*tiny, "run.total_frames=64"]), tmp_path / "run")
-    summary = TRAINERS["ppo_baseline"].train(load_config(CNN_RECIPE, [*tiny, "run.total_frames=128"]), tmp_path / "run")
+    assert load_config(recipe, tiny).env.reset_workers == 1  # the recipes' prefetched worlds are what this runs
+    TRAINERS["ppo_baseline"].train(load_config(recipe, [*tiny, "run.total_frames=64"]), tmp_path / "run")
+    summary = TRAINERS["ppo_baseline"].train(load_config(recipe, [*tiny, "run.total_frames=128"]), tmp_path / "run")
     assert summary["frames"] == 128 and "crafter_score" in summary
     header = (tmp_path / "run" / "progress.csv").read_text().splitlines()[0]
     assert "crafter_score" in header
     assert len((tmp_path / "run" / "progress.csv").read_text().splitlines()) == 3  # the resumed run kept row 1
     assert (tmp_path / "run" / "metrics" / "attempt_02").is_dir()
-    rows = TRAINERS["ppo_baseline"].params(load_config(CNN_RECIPE, tiny))
+    rows = TRAINERS["ppo_baseline"].params(load_config(recipe, tiny))
     assert rows[-1]["component"] == "Total" and rows[-1]["trainable"] == sum(r["trainable"] for r in rows[:-1])
 
 

@@ -74,6 +74,9 @@ class EnvConfig:
     num_envs: int = 8
     reward_history: int = 8
     max_mission_tokens: int = 16
+    # adapters whose reset is costly (Crafter's world generation) prepare the next episode in this many worker
+    # processes while the current one runs; 0: inline. An adapter without the option refuses a value > 0
+    reset_workers: int = 0
 
 
 @dataclass
@@ -143,6 +146,7 @@ class PPOConfig:
 #: Ranges of the shared sections' numbers (every other int must be >= 1 and every float finite).
 BASE_RANGES: dict[str, Range] = {
     "env.reward_history": (NON_NEGATIVE, ">= 0 (0: no reward history)"),
+    "env.reset_workers": (lambda v: 0 <= v <= 64, "in [0, 64] (0: resets inline)"),
     "run.seed": (lambda v: 0 <= v < 2**32, "in [0, 2**32 - 1]"),
     "run.stop_at_success": (UNIT_INTERVAL, "in (0, 1]"),
     "env.num_envs": size_range(4_096),

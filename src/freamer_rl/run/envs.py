@@ -76,8 +76,19 @@ def _import_modules(names: Sequence[str]) -> None:
 
 
 def env_options(cfg: Any) -> dict[str, Any]:
-    """Adapter keyword options implied by the config; the adapter declares them (see ``EnvAdapter.options``)."""
-    return env_registry.get_adapter(cfg.env.adapter).options(cfg)
+    """Adapter keyword options implied by the config; the adapter declares them (see ``EnvAdapter.options``).
+
+    Raises:
+        ConfigError: ``env.reset_workers`` > 0 for an adapter that does not take it (it would be ignored).
+    """
+    options = env_registry.get_adapter(cfg.env.adapter).options(cfg)
+    workers = getattr(cfg.env, "reset_workers", 0)
+    if workers and "reset_workers" not in options:
+        raise ConfigError(
+            f"env.reset_workers={workers}: the {cfg.env.adapter!r} adapter prepares no resets in workers (Crafter "
+            "does); set env.reset_workers=0"
+        )
+    return options
 
 
 def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
