@@ -39,6 +39,7 @@ to the raw env's steps/s of the same round (no older commit). What it times: ``t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import csv
 import json
 import os
@@ -135,15 +136,18 @@ def _time_freamer(spec: dict) -> dict:
         collector = _seam(trainer, "make_collector", "_make_collector")((warmup + k) * fpb)
         compute_advantage = _seam(trainer, "compute_advantage", "_compute_advantage")
         update_step = _seam(trainer, "update", "_update")
+        # run.update_threads as train() applies it (trees older than the option learn at run.threads)
+        learning_threads = getattr(trainer, "learning_threads", contextlib.nullcontext)
         it = iter(collector)
         collect, advantage, update, frames = [], [], [], 0
         for i in range(warmup + k):
             t0 = time.perf_counter()
             data = next(it)
             t1 = time.perf_counter()
-            data = compute_advantage(data)
-            t2 = time.perf_counter()
-            update_step(data)
+            with learning_threads():
+                data = compute_advantage(data)
+                t2 = time.perf_counter()
+                update_step(data)
             t3 = time.perf_counter()
             trainer.frames += data.numel()
             collector.update_policy_weights_()

@@ -137,3 +137,47 @@ def test_ray_backend_trains_through_the_trainer(local_ray, tmp_path):
     assert [int(r["frames"]) for r in rows] == [128, 256, 384]
     losses = [float(r["loss_objective"]) for r in rows]
     assert all(math.isfinite(v) for v in losses) and len(set(losses)) > 1
+
+
+@pytest.mark.parametrize("update_threads", [None, 2])
+def test_learning_runs_at_update_threads_and_collection_at_run_threads(tmp_path, monkeypatch, update_threads):
+    """``run.update_threads``: torch's thread count is that value inside every learning step of ``train()`` and
+    ``run.threads`` again for the next batch's collection (None: run.threads throughout)."""
+    from freamer_rl.trainers.minigrid_ppo import Trainer
+
+    seen = {"learn": [], "collect": []}
+    learn = Trainer._learn
+
+    def spy_learn(self, data):
+        seen["learn"].append(torch.get_num_threads())
+        return learn(self, data)
+
+    monkeypatch.setattr(Trainer, "_learn", spy_learn)
+    extra = [] if update_threads is None else [f"run.update_threads={update_threads}"]
+    cfg = load_config(TINY, ["run.total_frames=256", "run.threads=1", "logging.progress_bar=false", *extra])
+    trainer = Trainer(cfg, tmp_path / "run", resume=False)
+    make = trainer._make_collector
+
+    def counting_collector(remaining):  # the thread count each time the loop asks for the next batch
+        collector = make(remaining)
+
+        class Counting:
+            def __iter__(self):
+                it = iter(collector)
+                while True:
+                    seen["collect"].append(torch.get_num_threads())
+                    try:
+                        yield next(it)
+                    except StopIteration:
+                        return
+
+            def __getattr__(self, name):
+                return getattr(collector, name)
+
+        return Counting()
+
+    trainer._make_collector = counting_collector
+    trainer.train()
+    assert seen["learn"] == [update_threads or 1] * 2  # two batches of 128 frames
+    assert len(seen["collect"]) >= 2 and set(seen["collect"]) == {1}
+    assert torch.get_num_threads() == 1

@@ -106,6 +106,9 @@ class RunConfig:
     output_dir: str = "runs"
     name: str | None = None
     threads: int = 1
+    # torch threads while learning (advantages and updates; None: run.threads), back to run.threads for collection:
+    # e.g. 2 on a 2-core machine whose second core generates Crafter worlds during collection (env.reset_workers)
+    update_threads: int | None = None
     device: str = "cpu"
     stop_at_success: float | None = None  # stop early once the windowed success rate reaches this
     # Transfer: start a fresh run from the model weights of another run (its directory, or a checkpoint file), e.g.

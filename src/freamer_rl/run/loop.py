@@ -23,6 +23,7 @@ run directory).
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import math
@@ -264,8 +265,24 @@ class RunLoop:
         return self._make_collector(remaining)
 
     def learn(self, data: TensorDictBase) -> dict[str, float]:
-        """One learning step on a collected batch ``[*B, T]``, as :meth:`train` runs it; returns its log values."""
-        return self._learn(data)
+        """One learning step on a collected batch ``[*B, T]``, as :meth:`train` runs it (with
+        :meth:`learning_threads`); returns its log values."""
+        with self.learning_threads():
+            return self._learn(data)
+
+    @contextlib.contextmanager
+    def learning_threads(self):
+        """torch's thread count while learning: ``run.update_threads`` inside, ``run.threads`` again after (for
+        collection, whose policy forward and envs run in this process)."""
+        n = self.cfg.run.update_threads
+        if n is None or n == self.cfg.run.threads:
+            yield
+            return
+        torch.set_num_threads(n)
+        try:
+            yield
+        finally:
+            torch.set_num_threads(self.cfg.run.threads)
 
     def _make_collector(self, remaining: int):
         seed = self.cfg.run.seed * 10_000 + self.frames  # a resumed run does not replay the same episodes
@@ -318,7 +335,7 @@ class RunLoop:
         try:
             with surfaced_interrupts():  # an interrupt that a library turned into its own error
                 for data in collector:
-                    losses = self._learn(data)
+                    losses = self.learn(data)
                     # counted only once trained on, so a checkpoint written on interrupt is consistent
                     self.stats.update(data, self.frames)
                     if self.achievements is not None:
