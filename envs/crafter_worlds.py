@@ -38,7 +38,6 @@ _ENV_ATTRIBUTES = (
     "_local_view",
     "_sem_view",
 )
-_VIEW_WORLD = "_world"
 
 #: (process id, workers) -> the pool of this process (a forked child does not reuse its parent's pool)
 _POOLS: dict[tuple[int, int], ProcessPoolExecutor] = {}
@@ -61,9 +60,7 @@ def generate_world(seed: int, episode: int, env_kwargs: dict[str, Any]) -> bytes
 def check_crafter_internals(env: Any) -> None:
     """Raise :class:`EnvSetupError` unless ``env`` (a ``crafter.Env``) has what :func:`install_world` sets."""
     missing = [a for a in _ENV_ATTRIBUTES if not hasattr(env, a)]
-    missing += [
-        f"{v}.{_VIEW_WORLD}" for v in ("_local_view", "_sem_view") if not hasattr(getattr(env, v, None), _VIEW_WORLD)
-    ]
+    missing += [f"{v}._world" for v in ("_local_view", "_sem_view") if not hasattr(getattr(env, v, None), "_world")]
     if missing:
         raise EnvSetupError(
             f"env.reset_workers: this crafter release lacks {', '.join(missing)} (written by a prefetched reset); "
