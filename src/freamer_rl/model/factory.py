@@ -156,10 +156,10 @@ def build_freamer(
         d,
         flow_hidden=cfg.flow.hidden,
         flow_steps=cfg.flow.steps,
-        flow_adaptive_steps=tuple(getattr(cfg.flow, "adaptive_steps", None) or ()) or None,
-        flow_tau=float(getattr(cfg.flow, "adaptive_tau", 1.0)),
-        reliability=getattr(cfg.flow, "reliability", "off"),
-        reliability_margin=float(getattr(cfg.flow, "reliability_margin", 2.0)),
+        flow_adaptive_steps=tuple(cfg.flow.adaptive_steps or ()) or None,
+        flow_tau=float(cfg.flow.adaptive_tau),
+        reliability=cfg.flow.reliability,
+        reliability_margin=float(cfg.flow.reliability_margin),
         gate_init={
             **{m: cfg.flow.gate_init.get(m, MODALITIES[m].gate_init) for m in modalities},
             "fused": cfg.flow.gate_init.get("fused", FUSED_GATE_INIT),
@@ -181,7 +181,7 @@ def build_freamer(
     trunk = TensorDictSequential(*steps)
 
     actor = build_actor(action_spec, d, cfg.head_hidden)
-    critic = build_critic(d, cfg.head_hidden, detached=getattr(cfg, "critic_input", "shared") == "detached")
+    critic = build_critic(d, cfg.head_hidden, detached=cfg.critic_input == "detached")
     actor_value = ActorValueOperator(trunk, actor, critic)
     return FreamerModules(
         actor_value=actor_value,
