@@ -74,6 +74,10 @@ def test_suite_evaluates_each_run_resumably_and_records_failures(tmp_path):
     assert noisy["condition"] == "state_2" and noisy["group"] == "embed.state:gaussian" and noisy["level"] == 2.0
     assert noisy["checkpoint_frames"] == 128 and noisy["embedding_noise"] == {"state": 2.0}
     assert {"return_mean", "success_rate", "gate_state", "fm_displacement_state"} <= set(noisy)
+    # the episodes behind the means, in the evaluator's order (a one-seed report's intervals resample them)
+    assert len(noisy["episode_returns"]) == len(noisy["episode_successes"]) == noisy["episodes"] == 2
+    assert sum(noisy["episode_returns"]) / 2 == pytest.approx(noisy["return_mean"], abs=1e-5)
+    assert sum(noisy["episode_successes"]) / 2 == pytest.approx(noisy["success_rate"])
     assert "nope" in json.loads((run_dir / "eval" / "nokey.json").read_text())["error"]
     listing = dry_run_listing(path, out)
     assert "state_2                  done" in listing and "nokey                    failed: " in listing
@@ -165,3 +169,50 @@ def test_gate_points_separate_the_trained_gate_input_gate_weight_and_displacemen
     points = gate_points(rows, cfg, "grid:salt")
     assert set(points) == {("a", k, "state") for k in ("gate", "gate_input", "weight", "fm_displacement")}
     assert points["a", "weight", "state"] == [(0.0, pytest.approx(0.3)), (0.5, pytest.approx(0.3))]  # seed mean
+
+
+def test_one_seed_report_resamples_the_evaluation_episodes(tmp_path):
+    """With one seed there is nothing to resample across runs: the score and R intervals come from the run's own
+    evaluation episodes (marked), and constant episodes give a zero-width interval; two seeds resample seeds."""
+    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
+    path = tmp_path / "suite.yaml"
+    path.write_text(
+        f"name: one\nseeds: [0]\ntotal_frames: 256\n{ENTRIES}"
+        "evaluate:\n  episodes: 8\n  conditions:\n    - {label: clean}\n"
+        "    - {label: grid_salt_0.5, corrupt: [{key: grid, kind: salt, level: 0.5}]}\n"
+        "  compare: [[a, b]]\n"
+    )
+    out = tmp_path / "out"
+    clean = [2.0, 4.0] * 4  # mean 3
+    noisy = [0.0, 3.0] * 4  # mean 1.5: R = 0.5
+    flat = [1.0] * 8
+    for label, (c, n) in {"a": (clean, noisy), "b": (flat, flat)}.items():
+        evals = {
+            "clean": {"return_mean": sum(c) / 8, "episode_returns": c},
+            "grid_salt_0.5": {"return_mean": sum(n) / 8, "episode_returns": n},
+        }
+        _fake_run(out, label, 0, {"final_success_rate": 1.0}, evals)
+    run_suite(path, output=out, report_only=True)
+    md = (out / "robustness.md").read_text()
+    row = next(line for line in md.splitlines() if line.startswith("| a | grid_salt_0.5 | grid:salt"))
+    score, ratio = (cell.strip() for cell in row.split("|")[6:8])
+    assert score.startswith("1.500 [") and score.endswith("] (e)") and ratio.startswith("0.500 [")
+    s_lo, s_hi = (float(v) for v in score[len("1.500 [") : -len("] (e)")].split(", "))
+    r_lo, r_hi = (float(v) for v in ratio[len("0.500 [") : -len("] (e)")].split(", "))
+    assert 0.0 <= s_lo < 1.5 < s_hi <= 3.0 and 0.0 <= r_lo < 0.5 < r_hi <= 1.0  # the episodes' spread, not [x, x]
+    assert "| a | clean | clean | 0 | 1 | 3.000 [" in md and "| 1.000 [1.000, 1.000] (e) |" in md  # clean R is 1
+    assert "| b | grid_salt_0.5 | grid:salt | 0.5 | 1 | 1.000 [1.000, 1.000] (e) | 1.000 [1.000, 1.000] (e) |" in md
+    assert "(e): one seed, so the interval resamples that run's 8 evaluation episodes" in md
+    assert "too few seeds (< 2 per arm)" in md  # P(A > B) still needs seeds
+
+    # a second seed: the intervals resample seeds again, unmarked
+    for seed, scale in ((1, 0.8),):
+        evals = {
+            "clean": {"return_mean": 3.0, "episode_returns": clean},
+            "grid_salt_0.5": {"return_mean": 3.0 * scale, "episode_returns": noisy},
+        }
+        _fake_run(out, "a", seed, {"final_success_rate": 1.0}, evals)
+    path.write_text(path.read_text().replace("seeds: [0]", "seeds: [0, 1]"))
+    run_suite(path, output=out, report_only=True)
+    md = (out / "robustness.md").read_text()
+    assert "| a | grid_salt_0.5 | grid:salt | 0.5 | 2 | 1.950 [1.500, 2.400] | 0.650 [0.500, 0.800] |" in md

@@ -41,7 +41,7 @@ from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.sections import CorruptionConfig, check_corruption_entry
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.report import read_json
-from freamer_rl.experiments.stats import iqm_ci, probability_of_improvement
+from freamer_rl.experiments.stats import iqm_ci, mean_ratio_ci, probability_of_improvement, stratified_bootstrap_ci
 from freamer_rl.experiments.workers import error_line
 from freamer_rl.run.checkpoint import atomic_write_text, read_checkpoint
 from freamer_rl.run.rundir import write_rows_csv
@@ -66,6 +66,8 @@ __all__ = [
 
 EVAL_DIR = "eval"
 METRICS = ("return_mean", "success_rate")
+#: the evaluator's per-episode values of each metric (run.evaluation.run_episodes), for one-seed intervals
+EPISODE_VALUES = {"return_mean": "episode_returns", "success_rate": "episode_successes"}
 _CKPT_FRAMES = re.compile(r"checkpoint_(\d+)\.pt")
 
 
@@ -248,6 +250,7 @@ def robustness_rows(results: list[dict], cfg: EvaluateConfig) -> list[dict[str, 
             score = _number(data.get(cfg.metric)) if not data.get("error") else math.nan
             ratio = score / base if math.isfinite(base) and base != 0 and math.isfinite(score) else math.nan
             extras = {k: _number(v) for k, v in data.items() if k.startswith(TELEMETRY_PREFIXES)}
+            episodes = data.get(EPISODE_VALUES[cfg.metric]) if math.isfinite(score) else None
             rows.append(
                 {
                     "label": r["label"],
@@ -262,6 +265,8 @@ def robustness_rows(results: list[dict], cfg: EvaluateConfig) -> list[dict[str, 
                     "checkpoint_frames": data.get("checkpoint_frames"),
                     "error": data.get("error") or (None if data else "not evaluated"),
                     "extras": extras,
+                    "episode_scores": episodes or [],
+                    "clean_episode_scores": (evals[clean.label] or {}).get(EPISODE_VALUES[cfg.metric]) or [],
                 }
             )
     return rows
@@ -281,8 +286,22 @@ def _iqm(rows: list[dict], key: str) -> tuple[float, float, float]:
     return iqm_ci(scores) if scores else (math.nan, math.nan, math.nan)
 
 
+def _episode_intervals(row: dict, clean: bool) -> tuple[tuple[float, float, float], tuple[float, float, float]] | None:
+    """One run's score and R with 95% bootstrap intervals over its evaluation episodes (a corrupted condition's and
+    the clean condition's resampled on their own; the clean R is 1 by definition); None without per-episode values."""
+    eps, clean_eps = row["episode_scores"], row["clean_episode_scores"]
+    if len(eps) < 2 or len(clean_eps) < 2:
+        return None
+    score = stratified_bootstrap_ci({"episodes": eps}, lambda x: float(np.mean(x)))
+    ratio = (row["R"],) * 3 if clean else (row["R"], *mean_ratio_ci(eps, clean_eps)[1:])
+    return (row["score"], *score[1:]), ratio
+
+
 def arm_table(rows: list[dict], cfg: EvaluateConfig, labels: list[str]) -> list[dict[str, Any]]:
-    """Per arm (entry label, stratified over envs) x condition: seeds with a score, IQM of score and of R [95% CI]."""
+    """Per arm (entry label, stratified over envs) x condition: seeds with a score, IQM of score and of R [95% CI].
+
+    The intervals resample seeds; an arm with one seed on one env has none to resample, so its intervals resample
+    that run's evaluation episodes instead (``interval: episodes``; they leave out the run-to-run spread)."""
     out = []
     for label in labels:
         for c in cfg.conditions:
@@ -290,6 +309,10 @@ def arm_table(rows: list[dict], cfg: EvaluateConfig, labels: list[str]) -> list[
             if not sel:
                 continue
             (s, s_lo, s_hi), (q, q_lo, q_hi) = _iqm(sel, "score"), _iqm(sel, "R")
+            done = [r for r in sel if math.isfinite(r["score"])]
+            one_run = _episode_intervals(done[0], not c.corrupt) if len(done) == 1 else None
+            if one_run is not None:
+                (s, s_lo, s_hi), (q, q_lo, q_hi) = one_run
             out.append(
                 {
                     "label": label,
@@ -303,6 +326,7 @@ def arm_table(rows: list[dict], cfg: EvaluateConfig, labels: list[str]) -> list[
                     "R_iqm": q,
                     "R_low": q_lo,
                     "R_high": q_hi,
+                    "interval": "episodes" if one_run is not None else "seeds",
                 }
             )
     return out
@@ -336,10 +360,14 @@ def compare_table(rows: list[dict], cfg: EvaluateConfig) -> list[dict[str, Any]]
     return out
 
 
-def _ci(point: float, low: float, high: float, digits: int = 3) -> str:
+def _ci(point: float, low: float, high: float, digits: int = 3, mark: str = "") -> str:
     if not math.isfinite(point):
         return "n/a"
-    return f"{point:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]"
+    return f"{point:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]{mark}"
+
+
+#: marks an interval over one run's evaluation episodes (arm_table's ``interval: episodes``)
+EPISODES_MARK = " (e)"
 
 
 def robustness_markdown(name: str, cfg: EvaluateConfig, arms: list[dict], pairs: list[dict], rows: list[dict]) -> str:
@@ -356,8 +384,15 @@ def robustness_markdown(name: str, cfg: EvaluateConfig, arms: list[dict], pairs:
     for a in arms:
         lines.append(
             f"| {a['label']} | {a['condition']} | {a['group']} | {a['level']:g} | {a['n']} | "
-            f"{_ci(a['score_iqm'], a['score_low'], a['score_high'])} | {_ci(a['R_iqm'], a['R_low'], a['R_high'])} |"
+            f"{_ci(a['score_iqm'], a['score_low'], a['score_high'], mark=_mark(a))} | "
+            f"{_ci(a['R_iqm'], a['R_low'], a['R_high'], mark=_mark(a))} |"
         )
+    if any(a["interval"] == "episodes" for a in arms):
+        lines += [
+            "",
+            f"{EPISODES_MARK.strip()}: one seed, so the interval resamples that run's {cfg.episodes} evaluation "
+            "episodes (the clean ones separately for R); it leaves out the run-to-run spread, which seeds would show.",
+        ]
     lines += ["", "## Worst condition per arm", "", "| arm | worst condition | R IQM [95% CI] |", "|---|---|---:|"]
     for label in dict.fromkeys(a["label"] for a in arms):
         corrupted = [
@@ -367,7 +402,7 @@ def robustness_markdown(name: str, cfg: EvaluateConfig, arms: list[dict], pairs:
         ]
         if corrupted:
             w = min(corrupted, key=lambda a: a["R_iqm"])
-            lines.append(f"| {label} | {w['condition']} | {_ci(w['R_iqm'], w['R_low'], w['R_high'])} |")
+            lines.append(f"| {label} | {w['condition']} | {_ci(w['R_iqm'], w['R_low'], w['R_high'], mark=_mark(w))} |")
         else:
             lines.append(f"| {label} | n/a | n/a |")
     if pairs:
@@ -400,6 +435,10 @@ def robustness_markdown(name: str, cfg: EvaluateConfig, arms: list[dict], pairs:
         lines += ["", "## Missing evaluations", ""]
         lines += [f"- {r['label']} / {r['env']} / seed {r['seed']} / {r['condition']}: {r['error']}" for r in missing]
     return "\n".join(lines) + "\n"
+
+
+def _mark(arm: dict) -> str:
+    return EPISODES_MARK if arm["interval"] == "episodes" else ""
 
 
 def _safe(name: str) -> str:

@@ -80,6 +80,9 @@ def run_episodes(
         "success_rate": sum(succ) / len(succ) if succ else float("nan"),
         "return_mean": sum(e["return"] for e in chosen) / len(chosen),
         "length_mean": sum(e["length"] for e in chosen) / len(chosen),
+        # per episode, in the order above: a one-seed report's interval over episodes (experiments.robustness)
+        "episode_returns": [round(float(e["return"]), 6) for e in chosen],
+        **({"episode_successes": [float(s) for s in succ]} if succ else {}),
         "deterministic": deterministic,
         "corrupt": [dataclasses.asdict(c) for c in entries],
         **means.means(),
