@@ -41,6 +41,15 @@ from freamer_rl.trainers.registry import evaluate_any, get_trainer, load_recipe
 logger = logging.getLogger("freamer_rl")
 
 
+def _result_json(result: dict) -> str:
+    """An evaluation as indented JSON with each list of numbers (the per-episode values) on one line."""
+    flat = {k: v for k, v in result.items() if isinstance(v, list) and all(isinstance(x, int | float) for x in v)}
+    text = json.dumps({k: (f"@{k}@" if k in flat else v) for k, v in result.items()}, indent=2, default=str)
+    for k, v in flat.items():
+        text = text.replace(json.dumps(f"@{k}@"), json.dumps(v))
+    return text
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="freamer-rl", description="FreamerV1 with TorchRL")
     parser.add_argument("--debug", action="store_true", help="show tracebacks for user errors")
@@ -140,7 +149,7 @@ def _run(args: argparse.Namespace) -> int:
             seed=args.seed,
             **options,
         )
-        sys.stdout.write(json.dumps(result, indent=2, default=str) + "\n")
+        sys.stdout.write(_result_json(result) + "\n")
         return 0
     if args.command == "health":
         if args.health_args[:1] == ["corruption"]:  # the sweep aggregates with experiments.stats (a higher tier)

@@ -188,8 +188,11 @@ def test_eval_command(tmp_path, capsys):
     run = tmp_path / "run"
     Trainer(tiny_cfg(), run).train()
     assert cli.main(["eval", str(run), "--episodes", "3"]) == 0
-    result = json.loads(capsys.readouterr().out)
-    assert result["episodes"] == 3 and 0.0 <= result["success_rate"] <= 1.0
+    out = capsys.readouterr().out
+    result = json.loads(out)
+    assert result["episodes"] == 3 and len(result["episode_returns"]) == 3
+    assert result["success_rate"] == pytest.approx(sum(result["episode_successes"]) / 3)
+    assert f'"episode_returns": {json.dumps(result["episode_returns"])}' in out  # one line, not one per episode
 
 
 @pytest.mark.parametrize(
