@@ -17,6 +17,7 @@ them fails there in one line rather than rendering a stale world.
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.util
 import os
 import pickle
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -96,7 +97,18 @@ def _pool(workers: int) -> ProcessPoolExecutor:
         # spawn: the learner's process holds torch threads and locks a fork would copy
         pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"))
         _POOLS[key] = pool
+        # A multiprocessing child (a suite worker, a collector process) joins its non-daemon children when it exits,
+        # before the executor's own exit hook would stop them, so it would wait forever on idle world workers. A
+        # finalizer with an exit priority runs before that join (and at a plain interpreter exit too); above 10, so
+        # before the call queue's own finalizer closes the feeder that must still carry the workers' stop sentinels.
+        multiprocessing.util.Finalize(None, _close_pool, args=(key,), exitpriority=100)
     return pool
+
+
+def _close_pool(key: tuple[int, int]) -> None:
+    pool = _POOLS.pop(key, None)
+    if pool is not None:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 class WorldPrefetcher:

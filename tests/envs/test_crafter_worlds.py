@@ -9,6 +9,8 @@ exactly).
 from __future__ import annotations
 
 import importlib.util
+import os
+import threading
 import types
 
 import numpy as np
@@ -17,6 +19,7 @@ import torch
 from torchrl.envs.utils import check_env_specs
 
 from freamer_rl.errors import ConfigError, EnvSetupError
+from freamer_rl.experiments.workers import worker_pool
 from freamer_rl.run.envs import env_options
 from freamer_rl.trainers.minigrid_ppo import FreamerConfig
 
@@ -112,3 +115,31 @@ def test_the_option_reaches_crafter_and_other_adapters_refuse_it():
         env_options(cfg)
     cfg.env.reset_workers = 0
     assert "reset_workers" not in env_options(cfg)
+
+
+def _reset_in_a_worker(payload: dict) -> dict:
+    """A suite job: a prefetching env resets twice, so its process holds an idle world worker when the job ends."""
+    from freamer_rl_envs.crafter import CrafterEnv
+
+    env = CrafterEnv(seed=payload["seed"], reset_workers=1, **SMALL)
+    env.reset()
+    env.reset()
+    env.close()
+    return {"ok": True, "pid": os.getpid()}
+
+
+def test_a_suite_worker_with_world_workers_exits():
+    """A multiprocessing child joins its children before the executor's exit hook would stop them: without the
+    prefetcher's finalizer a suite that ran a Crafter job waited forever at its end (seen on robustness_crafter)."""
+    done = threading.Event()
+    result: dict = {}
+
+    def run() -> None:
+        with worker_pool(1) as pool:
+            result.update(pool.submit(_reset_in_a_worker, {"seed": 3}).result(timeout=120))
+        done.set()  # the pool's shutdown returned: its worker and the worker's world pool exited
+
+    thread = threading.Thread(target=run, daemon=True)
+    thread.start()
+    assert done.wait(timeout=180), "the suite's worker pool did not shut down (a world worker kept its parent alive)"
+    assert result["ok"] and result["pid"] != os.getpid()

@@ -193,6 +193,14 @@ def test_eval_command(tmp_path, capsys):
     assert result["episodes"] == 3 and len(result["episode_returns"]) == 3
     assert result["success_rate"] == pytest.approx(sum(result["episode_successes"]) / 3)
     assert f'"episode_returns": {json.dumps(result["episode_returns"])}' in out  # one line, not one per episode
+    # the same seed gives the same episodes whatever the process drew before (sampled actions, corruption)
+    torch.manual_seed(999)
+    torch.rand(1000)
+    assert cli.main(["eval", str(run), "--episodes", "3", "--corrupt", "grid:salt:0.3"]) == 0
+    first = json.loads(capsys.readouterr().out)["episode_returns"]
+    torch.rand(77)
+    assert cli.main(["eval", str(run), "--episodes", "3", "--corrupt", "grid:salt:0.3"]) == 0
+    assert json.loads(capsys.readouterr().out)["episode_returns"] == first
 
 
 @pytest.mark.parametrize(

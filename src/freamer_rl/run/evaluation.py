@@ -58,16 +58,27 @@ def run_episodes(
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
     entries = eval_entries(cfg.env.corrupt, corrupt)
     corruption = corruption_transforms(entries, None)
-    env = make_batched_env(cfg, [*corruption, *primers], seed, num_envs=n_envs)
     success_fn = env_registry.get_adapter(cfg.env.adapter).success
     mode = ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM
-    try:
-        with set_exploration_type(mode):
-            per_env = _episodes_per_env(
-                env, policy, n_envs, -(-episodes // n_envs), success_fn, max_steps, step_metrics, means := LogMeans()
-            )
-    finally:
-        env.close()
+    # torch's generator draws the sampled actions and the corruption: seeded here (on a forked stream), so an
+    # evaluation does not depend on what its process drew before (a suite worker that trained first)
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        env = make_batched_env(cfg, [*corruption, *primers], seed, num_envs=n_envs)
+        try:
+            with set_exploration_type(mode):
+                per_env = _episodes_per_env(
+                    env,
+                    policy,
+                    n_envs,
+                    -(-episodes // n_envs),
+                    success_fn,
+                    max_steps,
+                    step_metrics,
+                    means := LogMeans(),
+                )
+        finally:
+            env.close()
     # episode k of every env before episode k + 1 of any: choosing by finishing order would favour short episodes
     chosen = [eps[k] for k in range(max(map(len, per_env))) for eps in per_env if k < len(eps)][:episodes]
     if not chosen:
