@@ -161,6 +161,11 @@ class RunRecord:
     error: str | None = None  # a problem found before the run started (its config does not load)
     stages: list[str] | None = None  # a chain entry's run: its stages' folder names in order; None: one recipe
 
+    @property
+    def tag(self) -> str:
+        """``label/env/seed<k>``: how logs and results name the run."""
+        return f"{self.label}/{self.env}/seed{self.seed}"
+
 
 def read_json(path: Path) -> dict | None:
     """A JSON object file, or None when it is missing, unreadable or not an object."""

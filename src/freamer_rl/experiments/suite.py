@@ -39,8 +39,9 @@ curve, shifted by the earlier stages' frames and episodes.
 
 An optional ``evaluate:`` section (:class:`~freamer_rl.experiments.robustness.EvaluateConfig`: episodes, seed,
 metric, conditions of evaluation-time corruption, ``compare`` pairs of entry labels) has every finished run
-evaluated under every condition in the same workers after training (``<run_dir>/eval/<condition>.json``; one already
-written for the run's final checkpoint is skipped, a failed one is retried), and adds the robustness report
+evaluated under every condition in the same workers, each run as soon as it is done
+(:mod:`~freamer_rl.experiments.suite_evals`; ``<run_dir>/eval/<condition>.json``; one already written for the run's
+final checkpoint is skipped, a failed one is retried), and adds the robustness report
 (:func:`~freamer_rl.experiments.robustness.write_robustness`). ``--report-only`` rebuilds everything from the folders.
 """
 
@@ -51,7 +52,6 @@ import logging
 import re
 import time
 from concurrent.futures import ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -65,14 +65,10 @@ from freamer_rl.experiments.report import DONE_NAME, FAILED_NAME, RunRecord, fai
 from freamer_rl.experiments.robustness import (
     EvaluateConfig,
     check_evaluate,
-    checkpoint_frames,
-    eval_job,
-    eval_path,
-    eval_state,
-    evaluate_condition,
     write_robustness,
 )
-from freamer_rl.experiments.workers import error_line, in_workers, worker_pool
+from freamer_rl.experiments.suite_evals import EvaluationQueue, describe_evaluations
+from freamer_rl.experiments.workers import collect_jobs, error_line, submit_jobs, worker_pool
 from freamer_rl.run.checkpoint import atomic_write_text
 from freamer_rl.run.rundir import RunDirLock
 from freamer_rl.trainers.registry import get_trainer, load_recipe
@@ -340,10 +336,6 @@ def _train_run(job: dict[str, Any]) -> dict[str, Any]:
     return {"ok": True, "summary": json.loads(json.dumps(summary, default=str)), "seconds": time.perf_counter() - t0}
 
 
-def _tag(run: SuiteRun) -> str:
-    return f"{run.label}/{run.env}/seed{run.seed}"
-
-
 def _outcome(future: Any, run: SuiteRun) -> dict[str, Any]:
     try:
         return future.result()
@@ -356,19 +348,26 @@ def _outcome(future: Any, run: SuiteRun) -> dict[str, Any]:
 
 def _finished_note(run: SuiteRun, out: dict[str, Any]) -> str:
     if not out["ok"]:
-        return f"{_tag(run)} FAILED: {out['error']}"
+        return f"{run.tag} FAILED: {out['error']}"
     s = out["summary"]
     success = s.get("final_success_rate")
-    return f"{_tag(run)} done in {out['seconds']:.0f} s: {s.get('frames', 0):,} frames" + (
+    return f"{run.tag} done in {out['seconds']:.0f} s: {s.get('frames', 0):,} frames" + (
         "" if success is None else f", success {success:.3f}"
     )
 
 
 def _execute(
-    pool: ProcessPoolExecutor, suite: str, todo: list[SuiteRun], remaining: list[int | None]
+    pool: ProcessPoolExecutor,
+    suite: str,
+    todo: list[SuiteRun],
+    remaining: list[int | None],
+    evaluations: EvaluationQueue | None = None,
+    done_before: list[SuiteRun] | None = None,
 ) -> list[SuiteRun]:
     """Train ``todo`` in the suite's workers (``remaining[i]``: the frames run ``i`` has left to train,
-    None when unknown, for the overall progress); returns the runs that finished without error."""
+    None when unknown, for the overall progress); returns the runs that finished without error. With
+    ``evaluations``, the runs of ``done_before`` are queued for evaluation once every training is queued, and
+    each run as soon as it finishes."""
     level = logging.getLogger("freamer_rl").getEffectiveLevel()
     finished: list[SuiteRun] = []
 
@@ -377,20 +376,25 @@ def _execute(
         out = _outcome(future, run)
         if out["ok"]:
             finished.append(run)
+            if evaluations is not None:
+                evaluations.add([run])
         return out["ok"], _finished_note(run, out)
 
     payloads = [
         {
             "recipe": str(r.recipe),
             "overrides": r.overrides,
-            "tag": _tag(r),
+            "tag": r.tag,
             "run_dir": str(r.run_dir),
             "target_frames": r.target_frames,
             "log_level": level,
         }
         for r in todo
     ]
-    in_workers(pool, f"suite {suite}", _train_run, payloads, remaining, "runs", on_result)
+    futures = submit_jobs(pool, _train_run, payloads)
+    if evaluations is not None:
+        evaluations.add(done_before or [])
+    collect_jobs(futures, f"suite {suite}", remaining, "runs", on_result)
     return finished
 
 
@@ -410,9 +414,15 @@ def _lock_results(root: Path, field: str) -> RunDirLock:
 
 
 def _train_missing(
-    pool: ProcessPoolExecutor, suite: SuiteConfig, root: Path, runs: list[SuiteRun], jobs: int
+    pool: ProcessPoolExecutor,
+    suite: SuiteConfig,
+    root: Path,
+    runs: list[SuiteRun],
+    jobs: int,
+    evaluations: EvaluationQueue | None = None,
 ) -> list[SuiteRun]:
-    """Train every run not done yet; returns those trained to the end."""
+    """Train every run not done yet; returns those trained to the end. With ``evaluations``, each done run's
+    evaluations are queued behind the trainings (see :func:`_execute`)."""
     states = describe(runs)
     pending = [(r, s) for r, s in zip(runs, states) if s["status"] != "done" and not r.error]
     counts = {k: sum(s["status"] == k for s in states) for k in ("done", "partial", "new", "failed")}
@@ -427,43 +437,14 @@ def _train_missing(
     )
     for run in runs:
         if run.error:
-            logger.warning("suite %s: %s cannot start: %s", suite.name, _tag(run), run.error)
+            logger.warning("suite %s: %s cannot start: %s", suite.name, run.tag, run.error)
     if not pending:
         return []
     remaining = [
         None if r.target_frames is None else max(r.target_frames - int(s["frames"] or 0), 1) for r, s in pending
     ]
-    return _execute(pool, suite.name, [r for r, _ in pending], remaining)
-
-
-def describe_evaluations(suite: SuiteConfig, runs: list[SuiteRun]) -> list[dict[str, Any]]:
-    """Per run x ``evaluate`` condition: label, env, seed, condition, status (``done`` for the run's final
-    checkpoint, ``stale``, ``failed``, ``new``, or ``waiting`` while the run is not done), error, path."""
-    if not suite.evaluate.conditions:
-        return []
-    rows = []
-    for run, state in zip(runs, describe(runs)):
-        frames = checkpoint_frames(run.run_dir) if state["status"] == "done" else None
-        for c in suite.evaluate.conditions:
-            path = eval_path(run.run_dir, c.label)
-            status = eval_state(path, frames) if state["status"] == "done" else "waiting"
-            error = None
-            if status == "failed":
-                error = (json.loads(path.read_text()) or {}).get("error")
-            rows.append(
-                {
-                    "label": run.label,
-                    "env": run.env,
-                    "seed": run.seed,
-                    "condition": c.label,
-                    "status": status,
-                    "error": error,
-                    "path": str(path),
-                    "run": run,
-                    "config": c,
-                }
-            )
-    return rows
+    done_before = [r for r, state in zip(runs, states) if state["status"] == "done"]
+    return _execute(pool, suite.name, [r for r, _ in pending], remaining, evaluations, done_before)
 
 
 def dry_run_listing(path: str | Path, output: str | Path | None = None) -> str:
@@ -477,7 +458,7 @@ def dry_run_listing(path: str | Path, output: str | Path | None = None) -> str:
             "partial": f"partial ({r['frames']:,} frames)",
         }.get(r["status"], f"failed: {r['error']}")
         lines.append(f"  {r['label']:<20} {r['env']:<32} seed {r['seed']:<3} {state}")
-    evals = describe_evaluations(suite, runs)
+    evals = describe_evaluations(suite.evaluate, runs)
     if evals:
         lines.append(f"{len(evals)} evaluations ({len(suite.evaluate.conditions)} conditions per run):")
     for e in evals:
@@ -487,53 +468,14 @@ def dry_run_listing(path: str | Path, output: str | Path | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _evaluate_missing(
-    pool: ProcessPoolExecutor, suite: SuiteConfig, runs: list[SuiteRun]
-) -> tuple[list[str], list[str]]:
-    """Evaluate every done run under every condition not evaluated for its final checkpoint yet; returns the tags
-    of the evaluations written and of those that failed."""
-    rows = describe_evaluations(suite, runs)
-    todo = [e for e in rows if e["status"] in ("new", "stale", "failed")]
-    waiting = sum(e["status"] == "waiting" for e in rows)
-    logger.info("suite %s: %d evaluations to run (%d wait for unfinished runs)", suite.name, len(todo), waiting)
-    if not todo:
-        return [], []
-    level = logging.getLogger("freamer_rl").getEffectiveLevel()
-    payloads = [eval_job(suite.evaluate, e["config"], e["run"].run_dir, _tag(e["run"]), level) for e in todo]
-    done: list[str] = []
-    failed: list[str] = []
-
-    def on_result(index: int, future: Any) -> tuple[bool, str]:
-        tag = payloads[index]["tag"]
-        try:
-            out = future.result()
-        except Exception as err:  # noqa: BLE001 -- BrokenProcessPool: the worker died; recorded like a failure
-            out = {"ok": False, "error": error_line(err)}
-            path = Path(todo[index]["path"])
-            path.parent.mkdir(parents=True, exist_ok=True)
-            atomic_write_text(path, json.dumps({"condition": todo[index]["condition"], "error": out["error"]}) + "\n")
-        (done if out["ok"] else failed).append(tag)
-        return out["ok"], tag if out["ok"] else f"{tag} FAILED: {out['error']}"
-
-    in_workers(
-        pool,
-        f"suite {suite.name} evaluation",
-        evaluate_condition,
-        payloads,
-        [None] * len(todo),
-        "evaluations",
-        on_result,
-    )
-    return done, failed
-
-
 def run_suite(
     path: str | Path, *, jobs: int = 1, output: str | Path | None = None, report_only: bool = False
 ) -> dict[str, Any]:
     """Train every run not yet done (``report_only``: none), then write the report.
 
-    With an ``evaluate`` section, every done run is then evaluated under its conditions (those not yet evaluated
-    for the run's final checkpoint) and the robustness report is written too.
+    With an ``evaluate`` section, every done run is evaluated under its conditions (those not yet evaluated for
+    the run's final checkpoint; each run as soon as it is done, in the same workers) and the robustness report is
+    written too.
 
     Returns ``{"output", "runs"`` (runs.csv rows), ``"trained"`` (tags of the runs trained to the end by this
     call), ``"failed"`` (tags of failed runs), ``"evaluated"`` / ``"eval_failed"`` (tags of this call's
@@ -547,13 +489,17 @@ def run_suite(
         trained, evaluated, eval_failed = [], [], []
         if not report_only:
             with worker_pool(jobs) as pool:  # workers start on demand: none when nothing is left to do
-                trained = _train_missing(pool, suite, root, runs, jobs)
-                if suite.evaluate.conditions:
-                    try:
-                        evaluated, eval_failed = _evaluate_missing(pool, suite, runs)
-                    except BrokenProcessPool:  # a training worker died (killed, out of memory): fresh workers
+                queue = EvaluationQueue(pool, suite.evaluate, suite.name) if suite.evaluate.conditions else None
+                trained = _train_missing(pool, suite, root, runs, jobs, queue)
+                if queue is not None:
+                    evaluated, eval_failed, lost = queue.finish(runs)
+                    if lost:  # a worker died (killed, out of memory): fresh workers for what was lost
                         with worker_pool(jobs) as fresh:
-                            evaluated, eval_failed = _evaluate_missing(fresh, suite, runs)
+                            again = EvaluationQueue(fresh, suite.evaluate, suite.name, record_lost=True)
+                            more, eval_failed, lost = again.finish(runs)
+                            evaluated += more
+                        if lost:
+                            logger.warning("suite %s: evaluations lost again (a worker died); rerun", suite.name)
         results = write_report(root, suite.name, list(runs))
         if suite.evaluate.conditions:
             write_robustness(root, suite.name, results, suite.evaluate)
@@ -561,7 +507,7 @@ def run_suite(
     return {
         "output": root,
         "runs": rows,
-        "trained": [_tag(r) for r in trained],
+        "trained": [r.tag for r in trained],
         "failed": [f"{r['label']}/{r['env']}/seed{r['seed']}" for r in rows if r["status"] == "failed"],
         "evaluated": evaluated,
         "eval_failed": eval_failed,

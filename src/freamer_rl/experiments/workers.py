@@ -1,10 +1,11 @@
 """The worker processes of a suite: spawned, one torch thread each, dying with the suite process.
 
-:func:`worker_pool` starts them (shared by training and evaluation); :func:`in_workers` runs a list of jobs in them
-with one overall progress. A worker dies with the suite, ``kill -9`` included: the kernel sends it SIGTERM when the
-parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``) and a parent-pid watchdog covers the rest, so the trainer checkpoints
-and frees its run lock. When the suite stops (SIGTERM, Ctrl-C), a shared event makes the jobs that
-``ProcessPoolExecutor`` had already queued to a worker return without running.
+:func:`worker_pool` starts them (shared by training and evaluation); :func:`submit_jobs` queues jobs to them (more can
+be queued while earlier ones run) and :func:`collect_jobs` waits for them with one overall progress. A worker dies with
+the suite, ``kill -9`` included: the kernel sends it SIGTERM when the parent dies (Linux ``prctl(PR_SET_PDEATHSIG)``)
+and a parent-pid watchdog covers the rest, so the trainer checkpoints and frees its run lock. When the suite stops
+(SIGTERM, Ctrl-C), a shared event makes the jobs that ``ProcessPoolExecutor`` had already queued to a worker return
+without running.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any
 
@@ -30,7 +31,7 @@ from freamer_rl.run.rundir import Terminated, catch_sigterm, restore_sigterm
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["error_line", "in_workers", "worker_pool"]
+__all__ = ["collect_jobs", "error_line", "submit_jobs", "worker_pool"]
 
 _PR_SET_PDEATHSIG = 1  # linux/prctl.h
 _ORPHAN_GRACE_S = 60.0  # an orphaned worker's time to checkpoint after SIGTERM before it exits regardless
@@ -98,20 +99,17 @@ def worker_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def in_workers(
-    pool: ProcessPoolExecutor,
-    desc: str,
-    worker: Any,
-    payloads: list[dict],
-    weights: list[int | None],
-    item: str,
-    on_result: Any,
-) -> None:
-    """Run ``worker(payload)`` for every payload in ``pool`` with one overall progress (``weights``: as
-    :class:`OverallProgress`); ``on_result(index, future) -> (ok, note)`` reads each outcome as it finishes."""
+def submit_jobs(pool: ProcessPoolExecutor, worker: Any, payloads: list[dict], start: int = 0) -> dict[Future, int]:
+    """Queue ``worker(payload)`` for every payload (in order, behind what the pool already holds); returns each
+    future with its index, counted from ``start``."""
+    return {pool.submit(_unless_stopped, worker, payload): start + i for i, payload in enumerate(payloads)}
+
+
+def collect_jobs(futures: dict[Future, int], desc: str, weights: list[int | None], item: str, on_result: Any) -> None:
+    """Wait for every queued job with one overall progress (``weights``: as :class:`OverallProgress`, one per
+    index); ``on_result(index, future) -> (ok, note)`` reads each outcome as it finishes."""
     progress = OverallProgress(desc, weights, item=item)
     try:
-        futures = {pool.submit(_unless_stopped, worker, payload): i for i, payload in enumerate(payloads)}
         for future in as_completed(futures):
             index = futures[future]
             ok, note = on_result(index, future)
