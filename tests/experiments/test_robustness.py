@@ -203,7 +203,7 @@ def test_one_seed_report_resamples_the_evaluation_episodes(tmp_path):
     assert "| a | clean | clean | 0 | 1 | 3.000 [" in md and "| 1.000 [1.000, 1.000] (e) |" in md  # clean R is 1
     assert "| b | grid_salt_0.5 | grid:salt | 0.5 | 1 | 1.000 [1.000, 1.000] (e) | 1.000 [1.000, 1.000] (e) |" in md
     assert "(e): one seed, so the interval resamples that run's 8 evaluation episodes" in md
-    assert "too few seeds (< 2 per arm)" in md  # P(A > B) still needs seeds
+    assert "| a | b | grid_salt_0.5 | 0.00 | too few seeds (< 3 per arm) |" in md  # P(A > B) needs seeds
 
     # a second seed: the intervals resample seeds again, unmarked
     for seed, scale in ((1, 0.8),):
@@ -216,3 +216,20 @@ def test_one_seed_report_resamples_the_evaluation_episodes(tmp_path):
     run_suite(path, output=out, report_only=True)
     md = (out / "robustness.md").read_text()
     assert "| a | grid_salt_0.5 | grid:salt | 0.5 | 2 | 1.950 [1.500, 2.400] | 0.650 [0.500, 0.800] |" in md
+
+    # two seeds per arm, every run of b keeping all of its score: P(a > b) = 0, but a bootstrap over two seeds says
+    # "0 [0, 0]", so no interval and no verdict; a third seed per arm gives both
+    def add_seed(seed: int, scale: float) -> None:
+        evals = {"clean": {"return_mean": 3.0, "episode_returns": clean}, "grid_salt_0.5": {"return_mean": 3.0 * scale}}
+        _fake_run(out, "a", seed, {"final_success_rate": 1.0}, evals)
+        flat_evals = {c: {"return_mean": 1.0, "episode_returns": flat} for c in ("clean", "grid_salt_0.5")}
+        _fake_run(out, "b", seed, {"final_success_rate": 1.0}, flat_evals)
+
+    shutil.rmtree(out / "runs" / "a" / ENV / "seed1")
+    add_seed(1, 0.8)
+    run_suite(path, output=out, report_only=True)
+    assert "| a | b | grid_salt_0.5 | 0.00 | too few seeds (< 3 per arm) |" in (out / "robustness.md").read_text()
+    add_seed(2, 0.6)
+    path.write_text(path.read_text().replace("seeds: [0, 1]", "seeds: [0, 1, 2]"))
+    run_suite(path, output=out, report_only=True)
+    assert "| a | b | grid_salt_0.5 | 0.00 [0.00, 0.00] | b ahead of a |" in (out / "robustness.md").read_text()

@@ -332,6 +332,11 @@ def arm_table(rows: list[dict], cfg: EvaluateConfig, labels: list[str]) -> list[
     return out
 
 
+#: seeds per arm below which P(A > B) gets no interval and no verdict: a bootstrap over one or two seeds has at most
+#: three distinct resamples per arm, and two seeds of A above two of B give P = 1 [1, 1]
+VERDICT_SEEDS = 3
+
+
 def verdict(a: str, b: str, low: float, high: float) -> str:
     """The protocol's reading of P(A > B) [low, high]: an arm is ahead only when the interval excludes 0.5."""
     if low > 0.5:
@@ -352,8 +357,9 @@ def compare_table(rows: list[dict], cfg: EvaluateConfig) -> list[dict[str, Any]]
             if set(ra) & set(rb):
                 row["p"], row["low"], row["high"] = probability_of_improvement(ra, rb)
                 row["verdict"] = verdict(a, b, row["low"], row["high"])
-                if min(sum(map(len, ra.values())), sum(map(len, rb.values()))) < 2:  # a bootstrap of one seed
-                    row["verdict"] = "too few seeds (< 2 per arm)"
+                if min(sum(map(len, ra.values())), sum(map(len, rb.values()))) < VERDICT_SEEDS:
+                    row["low"] = row["high"] = math.nan  # a bootstrap of 1-2 seeds: no interval to speak of
+                    row["verdict"] = f"too few seeds (< {VERDICT_SEEDS} per arm)"
             else:
                 row["verdict"] = "n/a (no env with R for both)"
             out.append(row)
@@ -363,6 +369,8 @@ def compare_table(rows: list[dict], cfg: EvaluateConfig) -> list[dict[str, Any]]
 def _ci(point: float, low: float, high: float, digits: int = 3, mark: str = "") -> str:
     if not math.isfinite(point):
         return "n/a"
+    if not (math.isfinite(low) and math.isfinite(high)):
+        return f"{point:.{digits}f}{mark}"
     return f"{point:.{digits}f} [{low:.{digits}f}, {high:.{digits}f}]{mark}"
 
 
