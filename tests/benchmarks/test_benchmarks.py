@@ -41,17 +41,20 @@ def test_suites_name_their_results_folder_after_themselves():
 
 
 @pytest.mark.parametrize("task", ["cartpole", "pendulum"])
-def test_gym_ppo_mlp_recipe_differs_from_freamer_only_in_the_network(task):
-    """The PPO-MLP of the gym suites trains with the FreamerV1 recipe's env, PPO settings, optimiser and budget."""
+@pytest.mark.parametrize("kind", ["mlp", "mlp_lstm"])
+def test_gym_baseline_recipes_differ_from_freamer_only_in_the_network(task, kind):
+    """The PPO-MLP and PPO-LSTM of the gym suites train with the FreamerV1 recipe's env, PPO settings, optimiser and
+    budget (the recurrent one with its sequence length too)."""
     _, freamer = load_recipe(ROOT / "recipes" / "gym" / f"{task}.yaml")
-    name, mlp = load_recipe(ROOT / "recipes" / "baselines" / f"ppo_mlp_{task}.yaml")
-    assert name == "ppo_baseline" and mlp.network.kind == "mlp" and mlp.network.observation_keys == ["observation"]
+    name, mlp = load_recipe(ROOT / "recipes" / "baselines" / f"ppo_{kind.split('_')[-1]}_{task}.yaml")
+    assert name == "ppo_baseline" and mlp.network.kind == kind and mlp.network.observation_keys == ["observation"]
     assert (mlp.env.adapter, mlp.env.id, mlp.env.num_envs) == (
         freamer.env.adapter,
         freamer.env.id,
         freamer.env.num_envs,
     )
-    fields = [f for f in vars(freamer.ppo) if f != "sequence_length"]  # PPO-MLP steps need no sequence layout
+    # feed-forward PPO steps need no sequence layout
+    fields = [f for f in vars(freamer.ppo) if kind == "mlp_lstm" or f != "sequence_length"]
     assert {f: getattr(mlp.ppo, f) for f in fields} == {f: getattr(freamer.ppo, f) for f in fields}
     assert vars(mlp.optim) == vars(freamer.optim)
     assert mlp.shaping.reward_scale == freamer.shaping.reward_scale  # the same value targets

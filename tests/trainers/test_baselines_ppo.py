@@ -149,6 +149,27 @@ def test_ppo_on_crafter_logs_the_score_and_resumes(tmp_path, recipe):
     assert rows[-1]["component"] == "Total" and rows[-1]["trainable"] == sum(r["trainable"] for r in rows[:-1])
 
 
+GYM_BASELINES = sorted((ROOT / "recipes" / "baselines").glob("ppo_*_cartpole.yaml")) + sorted(
+    (ROOT / "recipes" / "baselines").glob("ppo_*_pendulum.yaml")
+)
+
+
+@pytest.mark.parametrize("recipe", GYM_BASELINES, ids=[r.stem for r in GYM_BASELINES])
+def test_gym_baseline_recipes_train_and_evaluate(tmp_path, recipe):
+    """Every gym baseline recipe as shipped, shrunk: two batches train, the episodes in them are CartPole's or
+    Pendulum's (Pendulum's 200-step episodes end at 200 frames each), and the checkpoint evaluates."""
+    tiny = ["ppo.frames_per_batch=256", "ppo.minibatch_size=64", "ppo.epochs=1", "logging.progress_bar=false"]
+    cfg = load_config(recipe, [*tiny, "run.total_frames=512"])
+    summary = TRAINERS["ppo_baseline"].train(cfg, tmp_path / "run")
+    assert summary["frames"] == 512 and summary["trainer"] == "ppo_baseline"
+    if "pendulum" in recipe.stem:  # 8 envs x 64 steps: no 200-step episode has ended yet
+        assert summary["episodes"] == 0
+    else:  # random CartPole play ends episodes within ~20 steps
+        assert summary["episodes"] >= 8 and summary["final_return_mean"] > 0
+    result = TRAINERS["ppo_baseline"].evaluate(resolve_checkpoint(tmp_path / "run"), episodes=2)
+    assert result["episodes"] == 2
+
+
 def test_resume_refuses_another_network(tmp_path):
     from freamer_rl.errors import CheckpointError
 
