@@ -32,6 +32,9 @@ def _is_png(path: Path) -> bool:
         ("conditions: [{label: clean}, {label: clean, corrupt: [{key: grid}]}]", "'clean' is used twice"),
         ("conditions: [{label: clean}]\n  compare: [[a, c]]", r"evaluate.compare\[0\]: 'c' is not an entry label"),
         ("conditions: [{label: clean}]\n  compare: [[a]]", r"evaluate.compare\[0\]: expected two"),
+        ("conditions: [{label: clean}]\n  compare_on: [R, gain]", "evaluate.compare_on: expected entries of R, score"),
+        ("conditions: [{label: clean}]\n  compare_on: [R, R]", "evaluate.compare_on: expected distinct entries"),
+        ("conditions: [{label: clean}]\n  compare_on: []", "evaluate.compare_on: expected distinct entries"),
         (
             "conditions: [{label: clean}, {label: g, corrupt: [{key: grid, kind: blur, level: 1}]}]",
             r"evaluate.conditions\[1\].corrupt\[0\].kind",
@@ -203,7 +206,7 @@ def test_one_seed_report_resamples_the_evaluation_episodes(tmp_path):
     assert "| a | clean | clean | 0 | 1 | 3.000 [" in md and "| 1.000 [1.000, 1.000] (e) |" in md  # clean R is 1
     assert "| b | grid_salt_0.5 | grid:salt | 0.5 | 1 | 1.000 [1.000, 1.000] (e) | 1.000 [1.000, 1.000] (e) |" in md
     assert "(e): one seed, so the interval resamples that run's 8 evaluation episodes" in md
-    assert "| a | b | grid_salt_0.5 | 0.00 | too few seeds (< 3 per arm) |" in md  # P(A > B) needs seeds
+    assert "| R | a | b | grid_salt_0.5 | 0.00 | too few seeds (< 3 per arm) |" in md  # P(A > B) needs seeds
 
     # a second seed: the intervals resample seeds again, unmarked
     for seed, scale in ((1, 0.8),):
@@ -228,8 +231,16 @@ def test_one_seed_report_resamples_the_evaluation_episodes(tmp_path):
     shutil.rmtree(out / "runs" / "a" / ENV / "seed1")
     add_seed(1, 0.8)
     run_suite(path, output=out, report_only=True)
-    assert "| a | b | grid_salt_0.5 | 0.00 | too few seeds (< 3 per arm) |" in (out / "robustness.md").read_text()
+    assert "| R | a | b | grid_salt_0.5 | 0.00 | too few seeds (< 3 per arm) |" in (out / "robustness.md").read_text()
     add_seed(2, 0.6)
     path.write_text(path.read_text().replace("seeds: [0, 1]", "seeds: [0, 1, 2]"))
     run_suite(path, output=out, report_only=True)
-    assert "| a | b | grid_salt_0.5 | 0.00 [0.00, 0.00] | b ahead of a |" in (out / "robustness.md").read_text()
+    assert "| R | a | b | grid_salt_0.5 | 0.00 [0.00, 0.00] | b ahead of a |" in (out / "robustness.md").read_text()
+    # on the score itself (compare_on: score; every condition, the clean one too) a beats b everywhere: b keeps all
+    # of a score of 1, a keeps 50-80% of a score of 3
+    path.write_text(path.read_text().replace("compare: [[a, b]]", "compare: [[a, b]]\n  compare_on: [R, score]"))
+    run_suite(path, output=out, report_only=True)
+    md = (out / "robustness.md").read_text()
+    assert "| R | a | b | grid_salt_0.5 | 0.00 [0.00, 0.00] | b ahead of a |" in md
+    assert "| score | a | b | clean | 1.00 [1.00, 1.00] | a ahead of b |" in md
+    assert "| score | a | b | grid_salt_0.5 | 1.00 [1.00, 1.00] | a ahead of b |" in md

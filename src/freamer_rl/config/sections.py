@@ -70,6 +70,9 @@ class EnvConfig:
     # second sensors of one observation, {new_key: source_key} (a float32 copy, written before any corruption), so a
     # benchmark can corrupt one of two redundant views: {grid2: grid} (freamer_rl.run.corruption.SensorCopy)
     copies: dict[str, str] = field(default_factory=dict)
+    # observations to keep a clean copy of, <key>_clean (same spec, written before any corruption; no policy reads
+    # it unless told to): the target of FreamerV1's paired denoising (model.flow.targets=paired)
+    clean_copies: list[str] = field(default_factory=list)
     id: str = "MiniGrid-MultiRoom-N2-S4-v0"
     num_envs: int = 8
     reward_history: int = 8
@@ -206,6 +209,15 @@ class BaseConfig:
         return False
 
 
+#: suffix of the clean copy ``env.clean_copies`` writes beside an observation
+CLEAN_SUFFIX = "_clean"
+
+
+def clean_key(key: str) -> str:
+    """The key of ``key``'s clean copy (``env.clean_copies``)."""
+    return f"{key}{CLEAN_SUFFIX}"
+
+
 def check_base(cfg: BaseConfig) -> None:
     """Every number against the schema's ``RANGES`` table, then names and choices of the shared sections: run name
     and device, optim schedule, collector, logging."""
@@ -224,6 +236,16 @@ def check_base(cfg: BaseConfig) -> None:
             raise ConfigError(f"env.copies: {new!r} is no observation key name ({problem})")
         if new == source:
             raise ConfigError(f"env.copies.{new}: a key cannot be a copy of itself")
+    if len(set(cfg.env.clean_copies)) != len(cfg.env.clean_copies):
+        raise ConfigError(f"env.clean_copies: a key is named twice in {cfg.env.clean_copies}")
+    for key in cfg.env.clean_copies:
+        if problem := run_name_problem(key) if key else "an empty key":
+            raise ConfigError(f"env.clean_copies: {key!r} is no observation key name ({problem})")
+        if cfg.reads_observation(clean_key(key)):
+            raise ConfigError(
+                f"env.clean_copies: the model reads {clean_key(key)!r}, the clean copy of {key!r}: a policy must not "
+                "see the uncorrupted value (the copy is a training target only)"
+            )
 
 
 def check_corruption_kind(kind: str, level: Any, where: str) -> None:

@@ -12,7 +12,8 @@ A suite's optional ``evaluate:`` section (:class:`EvaluateConfig`) names conditi
         - {label: clean}
         - {label: grid_salt_0.25, corrupt: [{key: grid, kind: salt, level: 0.25}]}
         - {label: embed_state_2, corrupt: [{key: embed.state, kind: gaussian, level: 2}], group: embed.state}
-      compare: [[fm_pre, concat]]   # probability of improvement of R between entry labels
+      compare: [[fm_pre, concat]]   # probability of improvement between entry labels
+      compare_on: [R]          # of R under each corruption; score: of the score under every condition
 
 A condition's ``group`` (default ``<key>:<kind>`` of its entries, ``clean`` for the clean one) and ``level`` (default
 its first entry's level, 0 when clean) place it on a curve R(level). After training, every finished run is evaluated
@@ -41,7 +42,8 @@ from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.sections import CorruptionConfig, check_corruption_entry
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.report import read_json
-from freamer_rl.experiments.stats import iqm_ci, mean_ratio_ci, probability_of_improvement, stratified_bootstrap_ci
+from freamer_rl.experiments.robustness_compare import COMPARE_ON, by_env, compare_markdown, compare_table
+from freamer_rl.experiments.stats import iqm_ci, mean_ratio_ci, stratified_bootstrap_ci
 from freamer_rl.experiments.workers import error_line
 from freamer_rl.run.checkpoint import atomic_write_text, read_checkpoint
 from freamer_rl.run.rundir import write_rows_csv
@@ -88,6 +90,9 @@ class EvaluateConfig:
     metric: str = "return_mean"
     conditions: list[EvalCondition] = field(default_factory=list)
     compare: list[list[str]] = field(default_factory=list)
+    # what P(A > B) compares (experiments.robustness_compare): R under each corruption, and/or the score under every
+    # condition (for arms trained with the corruption, whose clean scores differ)
+    compare_on: list[str] = field(default_factory=lambda: ["R"])
 
 
 def condition_group(c: EvalCondition) -> str:
@@ -146,6 +151,13 @@ def check_evaluate(cfg: EvaluateConfig, labels: list[str]) -> None:
         )
     if len(clean) > 1:
         raise ConfigError(f"evaluate.conditions[{clean[1]}]: a second clean condition (no corrupt entries)")
+    if not cfg.compare_on or len(set(cfg.compare_on)) != len(cfg.compare_on):
+        raise ConfigError(
+            f"evaluate.compare_on: expected distinct entries of {', '.join(COMPARE_ON)}, got {cfg.compare_on}"
+        )
+    for on in cfg.compare_on:
+        if on not in COMPARE_ON:
+            raise ConfigError(f"evaluate.compare_on: expected entries of {', '.join(COMPARE_ON)}, got {on!r}")
     for i, pair in enumerate(cfg.compare):
         if len(pair) != 2 or pair[0] == pair[1]:
             raise ConfigError(f"evaluate.compare[{i}]: expected two different entry labels [A, B], got {pair}")
@@ -272,17 +284,8 @@ def robustness_rows(results: list[dict], cfg: EvaluateConfig) -> list[dict[str, 
     return rows
 
 
-def _by_env(rows: list[dict], key: str) -> dict[str, list[float]]:
-    """``{env: [values over seeds]}`` of the finite ``key`` values (the strata of the bootstrap)."""
-    out: dict[str, list[float]] = {}
-    for r in rows:
-        if math.isfinite(r[key]):
-            out.setdefault(r["env"], []).append(r[key])
-    return out
-
-
 def _iqm(rows: list[dict], key: str) -> tuple[float, float, float]:
-    scores = _by_env(rows, key)
+    scores = by_env(rows, key)
     return iqm_ci(scores) if scores else (math.nan, math.nan, math.nan)
 
 
@@ -329,40 +332,6 @@ def arm_table(rows: list[dict], cfg: EvaluateConfig, labels: list[str]) -> list[
                     "interval": "episodes" if one_run is not None else "seeds",
                 }
             )
-    return out
-
-
-#: seeds per arm below which P(A > B) gets no interval and no verdict: a bootstrap over one or two seeds has at most
-#: three distinct resamples per arm, and two seeds of A above two of B give P = 1 [1, 1]
-VERDICT_SEEDS = 3
-
-
-def verdict(a: str, b: str, low: float, high: float) -> str:
-    """The protocol's reading of P(A > B) [low, high]: an arm is ahead only when the interval excludes 0.5."""
-    if low > 0.5:
-        return f"{a} ahead of {b}"
-    if high < 0.5:
-        return f"{b} ahead of {a}"
-    return "no clear difference"
-
-
-def compare_table(rows: list[dict], cfg: EvaluateConfig) -> list[dict[str, Any]]:
-    """Per ``compare`` pair x corrupted condition: P(A > B) of R with its stratified-bootstrap interval and verdict."""
-    out = []
-    for a, b in cfg.compare:
-        for c in (c for c in cfg.conditions if c.corrupt):
-            ra = _by_env([r for r in rows if r["label"] == a and r["condition"] == c.label], "R")
-            rb = _by_env([r for r in rows if r["label"] == b and r["condition"] == c.label], "R")
-            row = {"a": a, "b": b, "condition": c.label, "p": math.nan, "low": math.nan, "high": math.nan}
-            if set(ra) & set(rb):
-                row["p"], row["low"], row["high"] = probability_of_improvement(ra, rb)
-                row["verdict"] = verdict(a, b, row["low"], row["high"])
-                if min(sum(map(len, ra.values())), sum(map(len, rb.values()))) < VERDICT_SEEDS:
-                    row["low"] = row["high"] = math.nan  # a bootstrap of 1-2 seeds: no interval to speak of
-                    row["verdict"] = f"too few seeds (< {VERDICT_SEEDS} per arm)"
-            else:
-                row["verdict"] = "n/a (no env with R for both)"
-            out.append(row)
     return out
 
 
@@ -414,20 +383,7 @@ def robustness_markdown(name: str, cfg: EvaluateConfig, arms: list[dict], pairs:
         else:
             lines.append(f"| {label} | n/a | n/a |")
     if pairs:
-        lines += [
-            "",
-            "## Probability of improvement (R)",
-            "",
-            "P(A > B): the chance a run of A keeps more of its clean score than a run of B; A is ahead only when "
-            "the 95% interval excludes 0.5.",
-            "",
-            "| A | B | condition | P(A > B) [95% CI] | verdict |",
-            "|---|---|---|---:|---|",
-        ]
-        lines += [
-            f"| {p['a']} | {p['b']} | {p['condition']} | {_ci(p['p'], p['low'], p['high'], 2)} | {p['verdict']} |"
-            for p in pairs
-        ]
+        lines += compare_markdown(pairs, _ci)
     if any(r["extras"] for r in rows):
         lines += [
             "",

@@ -31,11 +31,16 @@ def check_shaping(cfg: Any) -> None:
 def privileged_information(cfg: Any) -> list[str]:
     """What of a run's config reads information the agent cannot observe, as ``"dotted.key=value"`` entries ([] when
     nothing does): ``shaping.language.distance=oracle`` with the language reward on (its b_prox is a BFS on the full
-    MiniGrid map). A schema without a ``shaping`` section has none."""
+    MiniGrid map); ``model.flow.targets=paired`` (its refiners train on the clean copy of an observation the run
+    itself corrupts, which no deployed sensor offers). A schema without those sections has none."""
+    out = []
     lang = cfg.shaping.language if hasattr(cfg, "shaping") else None
     if lang is not None and lang.weight and lang.distance == "oracle":
-        return ["shaping.language.distance=oracle"]
-    return []
+        out.append("shaping.language.distance=oracle")
+    flow = getattr(getattr(cfg, "model", None), "flow", None)
+    if getattr(flow, "targets", "synthetic") == "paired":
+        out.append("model.flow.targets=paired")
+    return out
 
 
 def check_machinery(cfg: Any) -> None:

@@ -106,6 +106,8 @@ def check_model_names(model: Any) -> None:
 
 #: ``model.flow.noise_scale`` choices
 NOISE_SCALES = ("absolute", "relative")
+#: ``model.flow.targets`` choices
+FM_TARGETS = ("synthetic", "paired")
 
 
 def _check_flow_choices(flow: Any) -> None:
@@ -114,6 +116,13 @@ def _check_flow_choices(flow: Any) -> None:
     if flow.noise_scale not in NOISE_SCALES:
         raise ConfigError(
             f"model.flow.noise_scale: expected one of {', '.join(NOISE_SCALES)}, got {flow.noise_scale!r}"
+        )
+    if flow.targets not in FM_TARGETS:
+        raise ConfigError(f"model.flow.targets: expected one of {', '.join(FM_TARGETS)}, got {flow.targets!r}")
+    if flow.targets == "paired" and flow.placement != "pre":
+        raise ConfigError(
+            "model.flow.targets: paired trains each modality's refiner on its own corrupted and clean embeddings, "
+            f"so it needs model.flow.placement=pre (got {flow.placement!r})"
         )
     if flow.reliability not in RELIABILITY_MODES:
         raise ConfigError(

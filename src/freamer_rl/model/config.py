@@ -70,6 +70,11 @@ class FlowConfig:
     # refiner's score) | weight (an embedding whose score is unusual for training data weighs less in the mix) | both
     reliability: str = "off"
     reliability_margin: float = 2.0  # the weight starts falling this many std of the training scores above their mean
+    # What the FM loss trains the refiners on (Eq. A13's pairs): synthetic (a clean embedding and itself plus Gaussian
+    # noise, the paper's) or paired (also the embedding of a corrupted observation and that of its clean copy, from
+    # env.clean_copies, with the residual gate trained to land on the clean one; needs a training corruption of those
+    # keys: the pairs exist only where the noise is added by the run itself)
+    targets: str = "synthetic"
 
 
 @dataclass

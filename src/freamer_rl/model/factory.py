@@ -77,6 +77,8 @@ class FreamerModules:
     fuser: FNOFuser | ConcatFuser | MeanFuser
     dnc: DNCModule | None
     modalities: list[str]
+    # Layer 1 alone (the encoders, cross-modal attention, slot pooling; the trunk's own modules): writes ("embed", m)
+    encoders: TensorDictSequential | None = None
 
     @property
     def policy(self):
@@ -149,6 +151,7 @@ def build_freamer(
     action_kind(action_spec)  # fail on an action spec without a head before building anything
     d = cfg.embed_dim
     steps: list[nn.Module] = _layer1_encoders(observation_spec, cfg)
+    encoders = TensorDictSequential(*steps)
 
     # Layers 2-4: flow-matching refiners, FNO fusion, DNC memory (the shared trunk builder).
     layers, refiners, fuser, dnc = build_filter_mix_memory(
@@ -192,6 +195,7 @@ def build_freamer(
         fuser=fuser,
         dnc=dnc,
         modalities=modalities,
+        encoders=encoders,
     )
 
 

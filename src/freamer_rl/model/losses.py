@@ -16,7 +16,7 @@ term then trains only the fuser's own parameters. The recomputation costs one ex
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import torch
@@ -27,6 +27,7 @@ from torch import nn
 from torchrl.objectives import LossModule
 
 from freamer_rl.layers.fno import smoothness_loss
+from freamer_rl.model.modalities import modality_keys
 
 
 def info_nce(a: torch.Tensor, b: torch.Tensor, temperature: float = 0.1) -> torch.Tensor:
@@ -69,11 +70,19 @@ class FreamerAuxLoss(LossModule):
             ``smooth_fuser(E.detach())`` and trains only the fuser; ``None``: on the trunk's ``fused_modalities``
             rows, so the gradient reaches encoders and refiners too (the literal Eq. 6; see the module docstring).
         trunk: optional trunk run on every minibatch before the keys above are read.
+        clean_keys: ``{observation key: key of its clean copy}`` (``model.flow.targets=paired``, with
+            ``env.clean_copies``): each refiner is also trained on the pair (embedding of the observation as
+            collected, embedding with the clean copies in its place) (:meth:`FlowMatchingRefiner.paired_loss`), its
+            synthetic CFM term then on the clean embedding; needs ``encoders``.
+        paired_modalities: the refiners trained on those pairs (default: all): the modalities whose inputs the
+            clean copies replace (:func:`paired_modalities`); the others keep the synthetic loss alone.
+        encoders: Layer 1 alone (``FreamerModules.encoders``), run without gradients on the clean copies.
         modalities: the model's modalities (default: the refiners' keys); the contrastive term needs vision and
             language among them.
 
     Returns (forward): a TensorDict with the weighted scalars ``loss_fm``, ``loss_cl``, ``loss_smooth`` (each only when
-    its weight is non-zero and its inputs exist) and detached per-modality diagnostics ``fm_<modality>``.
+    its weight is non-zero and its inputs exist) and detached per-modality diagnostics ``fm_<modality>`` (with
+    ``clean_keys``, also ``fm_left_<modality>``: the share of the corruption the refined embedding still carries).
     """
 
     @dataclass
@@ -98,6 +107,9 @@ class FreamerAuxLoss(LossModule):
         smooth_fuser: nn.Module | None = None,
         trunk: nn.Module | None = None,
         modalities: Sequence[str] | None = None,
+        clean_keys: Mapping[NestedKey, NestedKey] | None = None,
+        encoders: nn.Module | None = None,
+        paired_modalities: Sequence[str] | None = None,
     ) -> None:
         super().__init__()
         self.refiners = refiners
@@ -111,6 +123,13 @@ class FreamerAuxLoss(LossModule):
         self.trunk = trunk
         # the contrastive pair is read from the Layer-1 embeddings, refined or not (model.flow.placement)
         self.modalities = list(refiners) if modalities is None else list(modalities)
+        self.clean_keys = dict(clean_keys or {})
+        if self.clean_keys and encoders is None:
+            raise ValueError("FreamerAuxLoss: clean_keys needs encoders= (Layer 1, FreamerModules.encoders)")
+        self.encoders = encoders
+        self.paired = set(refiners) if paired_modalities is None else set(paired_modalities)
+        if self.clean_keys and not self.paired <= set(refiners):
+            raise ValueError(f"FreamerAuxLoss: paired_modalities {sorted(self.paired)} not all in {list(refiners)}")
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: nothing to forward (TorchRL calls this from ``set_keys``)."""
@@ -120,7 +139,7 @@ class FreamerAuxLoss(LossModule):
         keys = self.tensor_keys
         out = [(*_as_tuple(keys.embed), m) for m in self.refiners]
         out.append(keys.modal_stack if self.smooth_fuser is not None else keys.fused_modalities)
-        return out
+        return out + list(self.clean_keys.values())
 
     def _embed(self, td: TensorDictBase, m: str) -> torch.Tensor:
         return self._get(td, (*_as_tuple(self.tensor_keys.embed), m))
@@ -136,16 +155,42 @@ class FreamerAuxLoss(LossModule):
             )
         return value
 
+    def _fm_terms(self, td: TensorDictBase, out: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+        """Per refiner: the synthetic CFM loss (Eq. A13) on its embedding, or with ``clean_keys`` the mean of that
+        loss on the clean embedding and the paired loss (``fm_left_<m>`` written to ``out``)."""
+        clean = self._clean_embeddings(td) if self.clean_keys else None
+        terms = {}
+        for m, r in self.refiners.items():
+            e = self._embed(td, m)
+            if clean is None or m not in self.paired:
+                terms[m] = r.cfm_loss(e, noise_std=self.noise_std, relative=self.relative_noise)
+                continue
+            target = clean.get((*_as_tuple(self.tensor_keys.embed), m))
+            paired, out[f"fm_left_{m}"] = r.paired_loss(e, target)
+            terms[m] = 0.5 * (r.cfm_loss(target, noise_std=self.noise_std, relative=self.relative_noise) + paired)
+        return terms
+
+    def _clean_embeddings(self, td: TensorDictBase) -> TensorDictBase:
+        """Layer 1 on ``td``'s inputs with each observation replaced by its clean copy (no gradients)."""
+        missing = [k for k in self.clean_keys.values() if td.get(k, None) is None]
+        if missing:
+            raise KeyError(
+                f"FreamerAuxLoss: the clean copies {missing} are missing from the tensordict (env.clean_copies "
+                "writes them; keep them in the stored batch)"
+            )
+        inputs = td.select(*self.encoders.in_keys, strict=False)
+        for key, copy_key in self.clean_keys.items():
+            inputs.set(key, td.get(copy_key))
+        with torch.no_grad():
+            return self.encoders(inputs)
+
     def forward(self, td: TensorDictBase) -> TensorDict:
         keys = self.tensor_keys
         if self.trunk is not None:
             td = self.trunk(td.copy())  # recurrent mode is on inside every LossModule.forward
         out: dict[str, torch.Tensor] = {}
         if self.lambda_fm and len(self.refiners):
-            per_mod = {
-                m: r.cfm_loss(self._embed(td, m), noise_std=self.noise_std, relative=self.relative_noise)
-                for m, r in self.refiners.items()
-            }
+            per_mod = self._fm_terms(td, out)
             for m, v in per_mod.items():
                 out[f"fm_{m}"] = v.detach()
             out["loss_fm"] = self.lambda_fm * torch.stack(list(per_mod.values())).mean()
@@ -162,6 +207,16 @@ class FreamerAuxLoss(LossModule):
                 rows = self._get(td, keys.fused_modalities)
             out["loss_smooth"] = self.lambda_smooth * smoothness_loss(rows)
         return TensorDict(out, batch_size=[])
+
+
+def paired_modalities(modalities: Sequence[str], clean_copies: Sequence[str], observation_keys: dict) -> list[str]:
+    """The modalities whose Layer-1 inputs include one of ``clean_copies`` (``env.clean_copies``); vision and
+    language together when either is (their slots attend to each other before pooling)."""
+    copies = set(clean_copies)
+    paired = {m for m in modalities if copies & set(modality_keys(m, observation_keys))}
+    if {"vision", "language"} <= set(modalities) and paired & {"vision", "language"}:
+        paired |= {"vision", "language"}
+    return [m for m in modalities if m in paired]
 
 
 def _as_tuple(key: NestedKey) -> tuple:

@@ -40,12 +40,13 @@ from tensordict.utils import NestedKey
 from torchrl.data import Unbounded
 from torchrl.envs.transforms import Compose, Transform, TransformedEnv
 
-from freamer_rl.config.sections import check_corruption_kind, corruption_target
+from freamer_rl.config.sections import check_corruption_kind, clean_key, corruption_target
 from freamer_rl.errors import ConfigError
 
 __all__ = [
     "ModalityCorruption",
     "SensorCopy",
+    "clean_key",
     "corruption_transforms",
     "copy_transforms",
     "eval_entries",
@@ -259,34 +260,40 @@ class ModalityCorruption(Transform):
 
 
 class SensorCopy(Transform):
-    """A second sensor of one observation: ``new_key`` = ``source_key`` as float32 (``env.copies: {new: source}``),
-    written on reset and step before any corruption, so the two views can be corrupted one at a time."""
+    """A second sensor of one observation, written on reset and step before any corruption, so the two views can be
+    corrupted one at a time: ``new_key`` = ``source_key`` as float32 (``env.copies: {new: source}``), or with
+    ``same_spec`` the value itself under the source's own spec (``env.clean_copies``: ``<key>_clean``, the clean
+    target of the refiners' paired denoising, ``model.flow.targets=paired``)."""
 
-    def __init__(self, new_key: str, source_key: str) -> None:
+    def __init__(self, new_key: str, source_key: str, *, same_spec: bool = False, field: str = "env.copies") -> None:
         super().__init__(in_keys=[source_key], out_keys=[new_key])
-        self.new_key, self.source_key = new_key, source_key
+        self.new_key, self.source_key, self.same_spec = new_key, source_key, same_spec
+        self.field = f"{field}.{new_key}" if not same_spec else f"{field}[{source_key}]"
 
     def transform_observation_spec(self, observation_spec):
         keys = observation_spec.keys(True)
         if self.source_key not in keys:
             known = ", ".join(str(k) for k in observation_spec.keys(True, True))
-            raise ConfigError(f"env.copies.{self.new_key}: the env has no observation {self.source_key!r} ({known})")
+            raise ConfigError(f"{self.field}: the env has no observation {self.source_key!r} ({known})")
         if self.new_key in keys:
-            raise ConfigError(f"env.copies.{self.new_key}: the env already has an observation {self.new_key!r}")
+            raise ConfigError(f"{self.field}: the env already has an observation {self.new_key!r}")
         spec = observation_spec[self.source_key]
-        observation_spec[self.new_key] = Unbounded(spec.shape, device=spec.device, dtype=torch.float32)
+        observation_spec[self.new_key] = (
+            spec.clone() if self.same_spec else Unbounded(spec.shape, device=spec.device, dtype=torch.float32)
+        )
         return observation_spec
 
     def _apply_transform(self, x: torch.Tensor) -> torch.Tensor:
-        return x.to(torch.float32)
+        return x.clone() if self.same_spec else x.to(torch.float32)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         return self._call(tensordict_reset)
 
 
-def copy_transforms(copies: dict[str, str]) -> list[SensorCopy]:
-    """The ``env.copies`` entries as transforms, in order."""
-    return [SensorCopy(new, source) for new, source in copies.items()]
+def copy_transforms(copies: dict[str, str], clean_copies: list[str] | tuple[str, ...] = ()) -> list[SensorCopy]:
+    """The ``env.copies`` entries, then the ``env.clean_copies`` ones, as transforms, in order."""
+    out = [SensorCopy(new, source) for new, source in copies.items()]
+    return out + [SensorCopy(clean_key(k), k, same_spec=True, field="env.clean_copies") for k in clean_copies]
 
 
 def eval_entries(config_entries: list, override: list | None) -> list:

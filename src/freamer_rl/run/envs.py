@@ -95,7 +95,7 @@ def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
     """One env of the config (with its ``env.copies`` sensors)."""
     import_env_modules(cfg.env)
     env = env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
-    copies = copy_transforms(getattr(cfg.env, "copies", {}))
+    copies = copy_transforms(getattr(cfg.env, "copies", {}), getattr(cfg.env, "clean_copies", ()))
     return TransformedEnv(env, Compose(*copies)) if copies else env
 
 
@@ -117,7 +117,7 @@ def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None
     else:
         make = functools.partial(_single_env_fn, cfg.env.adapter, cfg.env.id, env_options(cfg), tuple(cfg.env.imports))
         base = SerialEnv(n, make)
-    copies = copy_transforms(getattr(cfg.env, "copies", {}))
+    copies = copy_transforms(getattr(cfg.env, "copies", {}), getattr(cfg.env, "clean_copies", ()))
     env = TransformedEnv(
         base, Compose(*copies, InitTracker(), StepCounter(), RewardSum(), *[t.clone() for t in transforms])
     )

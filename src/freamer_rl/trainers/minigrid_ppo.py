@@ -63,11 +63,11 @@ from freamer_rl.machinery.success_buffer import SuccessReplay, weighted_ppo_loss
 from freamer_rl.model.checks import check_model_names, check_model_shapes
 from freamer_rl.model.config import AUX_RENAMED, MODEL_RANGES, AuxConfig, ModelConfig
 from freamer_rl.model.factory import FreamerModules, build_freamer
-from freamer_rl.model.losses import FreamerAuxLoss
+from freamer_rl.model.losses import FreamerAuxLoss, paired_modalities
 from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
 from freamer_rl.model.weights import load_model_state
-from freamer_rl.run.corruption import corruption_transforms, eval_entries
+from freamer_rl.run.corruption import clean_key, corruption_transforms, eval_entries
 from freamer_rl.run.envs import check_env_writes, probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
@@ -128,8 +128,33 @@ def validate(cfg: FreamerConfig) -> None:
             f"model.flow.reliability: {cfg.model.flow.reliability} standardises the refiners' scores by statistics "
             "the flow-matching loss gathers, but aux.lambda_fm is 0; give aux.lambda_fm > 0"
         )
+    _check_paired_targets(cfg)
     check_machinery(cfg)
     check_ppo_layout(cfg)
+
+
+def _check_paired_targets(cfg: FreamerConfig) -> None:
+    """``model.flow.targets=paired`` needs the FM loss on, clean copies, and each of them read by the model and
+    corrupted during training (else every pair is a clean embedding and itself)."""
+    copies = cfg.env.clean_copies
+    if cfg.model.flow.targets != "paired":
+        return
+    if not cfg.aux.lambda_fm:
+        raise ConfigError("model.flow.targets: paired trains through the flow-matching loss, but aux.lambda_fm is 0")
+    if not copies:
+        raise ConfigError(
+            "model.flow.targets: paired needs env.clean_copies, the observation keys whose training corruption the "
+            "refiners learn to undo (e.g. env.clean_copies=[grid])"
+        )
+    trained = {c.key.split("[", 1)[0] for c in cfg.env.corrupt if c.when in ("train", "both")}
+    for key in copies:
+        if not cfg.reads_observation(key):
+            raise ConfigError(f"env.clean_copies: the model reads no observation {key!r}, so it has nothing to pair")
+        if key not in trained:
+            raise ConfigError(
+                f"env.clean_copies: {key!r} is not corrupted during training (env.corrupt with when train or both), "
+                "so its pairs would be a clean embedding and itself"
+            )
 
 
 VALIDATORS[FreamerConfig] = validate
@@ -186,6 +211,11 @@ class Trainer(RunLoop):
             relative_noise=cfg.model.flow.noise_scale == "relative",
             smooth_fuser=None if cfg.aux.smooth_into_encoders else self.modules.fuser,
             modalities=self.modules.modalities,
+            clean_keys={k: clean_key(k) for k in cfg.env.clean_copies} if cfg.model.flow.targets == "paired" else None,
+            encoders=self.modules.encoders,
+            paired_modalities=paired_modalities(
+                self.modules.modalities, cfg.env.clean_copies, cfg.model.observation_keys
+            ),
         ).to(self.device)
         # built once: a new buffer per batch costs time and logs TorchRL's storage INFO line every batch
         self._sequence_buffer = sequence_replay_buffer(
