@@ -146,6 +146,7 @@ def test_aux_loss_pairs_only_the_modalities_a_clean_copy_feeds():
     [
         (["model.flow.targets=denoised"], "model.flow.targets: expected one of synthetic, paired, got 'denoised'"),
         (["model.flow.targets=paired"], "model.flow.targets: paired needs env.clean_copies"),
+        (["env.clean_copies=[grid]"], r"env.clean_copies: \['grid'\] are targets of model.flow.targets=paired"),
         (
             [*PAIRED, "model.flow.placement=post"],
             "model.flow.targets: paired .* needs model.flow.placement=pre",

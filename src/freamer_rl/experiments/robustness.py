@@ -509,6 +509,8 @@ def plot_gates(path: Path, group: str, points: dict[tuple[str, str, str], list[t
         ax.set_ylabel(ylabel)
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=8)
+        else:  # say why a panel is blank rather than leave an empty frame
+            ax.text(0.5, 0.5, f"no run reports a {ylabel}", ha="center", va="center", transform=ax.transAxes)
     fig.suptitle(f"gates against corruption: {group} (mean across seeds)")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -138,6 +138,11 @@ def _check_paired_targets(cfg: FreamerConfig) -> None:
     corrupted during training (else every pair is a clean embedding and itself)."""
     copies = cfg.env.clean_copies
     if cfg.model.flow.targets != "paired":
+        if copies:
+            raise ConfigError(
+                f"env.clean_copies: {copies} are targets of model.flow.targets=paired, which is "
+                f"{cfg.model.flow.targets!r} here; drop env.clean_copies or set model.flow.targets=paired"
+            )
         return
     if not cfg.aux.lambda_fm:
         raise ConfigError("model.flow.targets: paired trains through the flow-matching loss, but aux.lambda_fm is 0")
