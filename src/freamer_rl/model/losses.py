@@ -126,10 +126,16 @@ class FreamerAuxLoss(LossModule):
         self.clean_keys = dict(clean_keys or {})
         if self.clean_keys and encoders is None:
             raise ValueError("FreamerAuxLoss: clean_keys needs encoders= (Layer 1, FreamerModules.encoders)")
-        self.encoders = encoders
         self.paired = set(refiners) if paired_modalities is None else set(paired_modalities)
         if self.clean_keys and not self.paired <= set(refiners):
             raise ValueError(f"FreamerAuxLoss: paired_modalities {sorted(self.paired)} not all in {list(refiners)}")
+        # only the Layer-1 steps the paired embeddings need run on the clean copies (not, say, the language
+        # Transformer when only the grid is paired): the same modules, every minibatch
+        self.encoders = (
+            encoders.select_subsequence(out_keys=[(*_as_tuple(self.tensor_keys.embed), m) for m in sorted(self.paired)])
+            if self.clean_keys
+            else None
+        )
 
     def _forward_value_estimator_keys(self, **kwargs) -> None:
         """No value estimator: nothing to forward (TorchRL calls this from ``set_keys``)."""

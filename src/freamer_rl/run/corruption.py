@@ -46,7 +46,6 @@ from freamer_rl.errors import ConfigError
 __all__ = [
     "ModalityCorruption",
     "SensorCopy",
-    "clean_key",
     "corruption_transforms",
     "copy_transforms",
     "eval_entries",

@@ -51,6 +51,7 @@ from freamer_rl.config.sections import (
     PPOConfig,
     check_base,
     check_ppo_layout,
+    clean_key,
 )
 from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.layers.checks import set_value_checks
@@ -67,7 +68,7 @@ from freamer_rl.model.losses import FreamerAuxLoss, paired_modalities
 from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
 from freamer_rl.model.weights import load_model_state
-from freamer_rl.run.corruption import clean_key, corruption_transforms, eval_entries
+from freamer_rl.run.corruption import corruption_transforms, eval_entries
 from freamer_rl.run.envs import check_env_writes, probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
