@@ -96,12 +96,13 @@ class EvaluationQueue:
 
     def finish(self, runs: list[RunRecord]) -> tuple[list[str], list[str], bool]:
         """Queue what is still due of ``runs``, wait for every queued evaluation; returns the tags written, the
-        tags failed, and whether evaluations were lost to a broken pool (evaluate them again in fresh workers)."""
+        tags failed (both in queue order, whatever order the workers finished in), and whether evaluations were lost
+        to a broken pool (evaluate them again in fresh workers)."""
         self.add(runs)
         waiting = sum(e["status"] == "waiting" for e in describe_evaluations(self.cfg, runs))
         logger.info("suite %s: %d evaluations to run (%d wait for unfinished runs)", self.name, len(self.rows), waiting)
-        done: list[str] = []
-        failed: list[str] = []
+        done: list[tuple[int, str]] = []
+        failed: list[tuple[int, str]] = []
 
         def on_result(index: int, future: Future) -> tuple[bool, str]:
             tag = self.payloads[index]["tag"]
@@ -114,11 +115,11 @@ class EvaluationQueue:
                 out = self._record_failure(index, err)
             except Exception as err:  # noqa: BLE001 -- recorded like a failure; the suite goes on
                 out = self._record_failure(index, err)
-            (done if out["ok"] else failed).append(tag)
+            (done if out["ok"] else failed).append((index, tag))
             return out["ok"], tag if out["ok"] else f"{tag} FAILED: {out['error']}"
 
         collect_jobs(self.futures, f"suite {self.name} evaluation", [None] * len(self.rows), "evaluations", on_result)
-        return done, failed, self.broken
+        return [tag for _, tag in sorted(done)], [tag for _, tag in sorted(failed)], self.broken
 
     def _record_failure(self, index: int, err: BaseException) -> dict[str, Any]:
         out = {"ok": False, "error": error_line(err)}
