@@ -87,3 +87,24 @@ def test_an_evaluation_whose_worker_dies(tmp_path, record_lost):
     assert [e["status"] for e in rows] == (["failed", "failed"] if record_lost else ["new", "new"])
     if record_lost:
         assert "BrokenProcessPool" in rows[0]["error"]
+
+
+def test_a_committed_run_without_checkpoints_keeps_its_evaluations(tmp_path):
+    # a results folder in git holds each run's done.json and eval/*.json but no checkpoints: a suite rerun into it
+    # (say, with a new arm) must keep those evaluations, not re-evaluate, fail ("no checkpoint") and overwrite them
+    suite = load_suite(_suite(tmp_path, "entries: [{label: a, recipe: tiny.yaml}]\n"))
+    runs = [_done_run(tmp_path, "a")]
+    evals = runs[0].run_dir / "eval"
+    evals.mkdir()
+    kept = {c: {"condition": c, "return_mean": 0.5, "checkpoint_frames": 128} for c in ("clean", "g")}
+    for c, data in kept.items():
+        (evals / f"{c}.json").write_text(json.dumps(data))
+    assert [e["status"] for e in describe_evaluations(suite.evaluate, runs)] == ["done", "done"]
+    # one of another checkpoint is stale, as with checkpoints present
+    (evals / "g.json").write_text(json.dumps({**kept["g"], "checkpoint_frames": 64}))
+    assert [e["status"] for e in describe_evaluations(suite.evaluate, runs)] == ["done", "stale"]
+    (evals / "g.json").write_text(json.dumps(kept["g"]))
+    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
+    out = run_suite(tmp_path / "early.yaml", jobs=1, output=tmp_path)
+    assert out["trained"] == [] and out["evaluated"] == [] and out["eval_failed"] == []
+    assert {c: json.loads((evals / f"{c}.json").read_text()) for c in kept} == kept

@@ -36,11 +36,17 @@ DUE = ("new", "stale", "failed")
 
 def describe_evaluations(cfg: EvaluateConfig, runs: list[RunRecord]) -> list[dict[str, Any]]:
     """Per run x condition of ``cfg``: label, env, seed, condition, status (``done`` for the run's final
-    checkpoint, ``stale``, ``failed``, ``new``, or ``waiting`` while the run is not done), error, path, run, config."""
+    checkpoint, ``stale``, ``failed``, ``new``, or ``waiting`` while the run is not done), error, path, run, config.
+    A finished run whose checkpoints are gone is judged by its final frame count (``done.json``)."""
     rows = []
     for run in runs:
-        done = run.error is None and run_status(run.run_dir, run.target_frames, run.stages)[0] == "done"
+        run_state, run_frames = run_status(run.run_dir, run.target_frames, run.stages)
+        done = run.error is None and run_state == "done"
         frames = checkpoint_frames(run.run_dir) if done else None
+        if done and frames is None:
+            # a finished run without its checkpoints (a committed results folder keeps none): its evaluations of
+            # the final checkpoint stand; evaluating again could only fail and overwrite them
+            frames = run_frames
         for c in cfg.conditions:
             path = eval_path(run.run_dir, c.label)
             status = eval_state(path, frames) if done else "waiting"
