@@ -132,6 +132,9 @@ def test_plan_folders_and_overrides(tmp_path, monkeypatch):
         ("name: demo\nenvs: [MiniGrid-Empty-5x5-v0, ..]\nentries: [{label: a, recipe: tiny.yaml}]\n", r"envs\[1\]"),
         ("name: demo\nentries: [{label: a, recipe: tiny.yaml, envs: [a/b, a_b]}]\n", r"entries\[0\].envs\[1\]"),
         ("name: demo\nseeds: []\nentries: [{label: a, recipe: tiny.yaml}]\n", "seeds: "),
+        ("name: demo\nentries: [{label: a, recipe: tiny.yaml, seeds: []}]\n", r"entries\[0\].seeds: "),
+        ("name: demo\nentries: [{label: a, recipe: tiny.yaml, seeds: [0, 2, 0]}]\n", r"entries\[0\].seeds\[2\]"),
+        ("name: demo\nentries: [{label: a, recipe: tiny.yaml, seeds: [-1]}]\n", r"entries\[0\].seeds\[0\]"),
         ("name: demo\ntotal_frames: 0\nentries: [{label: a, recipe: tiny.yaml}]\n", "total_frames: "),
         ("name: demo\nentries: []\n", "entries: "),
         ("name: ../demo\nentries: [{label: a, recipe: tiny.yaml}]\n", "name: "),
@@ -228,3 +231,19 @@ def test_chain_run_report_counts_to_95_across_the_stages(tmp_path):
     (row,) = write_report(tmp_path, "demo", [record])
     assert (row["frames"], row["episodes"], row["frames_to_95"], row["episodes_to_95"]) == (1500, 50, 1300, 46)
     assert row["success_rate"] == 0.97 and [(r["frames"], r["episodes"]) for r in row["rows"]] == [(1500, 50)]
+
+
+def test_an_entry_with_its_own_seeds(tmp_path):
+    # more seeds for the arm a comparison turns on: the entry's seeds replace the suite's for that entry alone, and
+    # the report counts each arm over its own seeds
+    path = _suite(
+        tmp_path,
+        "  - {label: a, recipe: tiny.yaml}\n  - {label: more, recipe: tiny.yaml, seeds: [0, 1, 2]}\n",
+        total_frames=128,
+    )
+    _, _, runs = plan_suite(path, tmp_path / "out")
+    assert [(r.label, r.seed) for r in runs] == [("a", 0), ("a", 1), ("more", 0), ("more", 1), ("more", 2)]
+    result = run_suite(path, jobs=2, output=tmp_path / "out")
+    assert len(result["trained"]) == 5
+    summary = (tmp_path / "out" / "summary.md").read_text()
+    assert f"| a | {ENV} | 2/2 (0 1) |" in summary and f"| more | {ENV} | 3/3 (0 1 2) |" in summary

@@ -11,6 +11,7 @@ A suite file is YAML::
     entries:
       - {label: freamer, recipe: ../minigrid_multiroom_n2s4.yaml}
       - {label: freamer_lr3e-4, recipe: ../minigrid_multiroom_n2s4.yaml, overrides: [optim.lr=3e-4]}
+      - {label: ppo_mlp, recipe: ../baselines/ppo_mlp_n2s4.yaml, seeds: [0, 1, 2, 3, 4]}   # its own seeds
 
 Recipes are paths relative to the suite file and may name any trainer of :data:`freamer_rl.trainers.registry.TRAINERS`.
 Each run trains in ``<output>/runs/<label>/<env folder>/seed<k>`` (env ids such as ``ALE/Pong-v5`` become one folder
@@ -94,6 +95,8 @@ class SuiteEntry:
     recipe: str  # relative to the suite file's folder
     overrides: list[str] = field(default_factory=list)
     envs: list[str] | None = None  # None: the suite's envs (or, without those, the recipe's env)
+    # None: the suite's seeds; e.g. more seeds for the arms a comparison turns on, without rerunning every arm
+    seeds: list[int] | None = None
 
 
 @dataclass
@@ -130,11 +133,7 @@ def _check_envs(envs: list[str], where: str) -> None:
 def _validate_suite(cfg: SuiteConfig) -> None:
     if problem := run_name_problem(cfg.name):
         raise ConfigError(f"name: {problem}")
-    if not cfg.seeds:
-        raise ConfigError("seeds: a suite needs at least one seed")
-    for i, seed in enumerate(cfg.seeds):
-        if seed < 0 or cfg.seeds.index(seed) != i:
-            raise ConfigError(f"seeds[{i}]: expected distinct seeds >= 0, got {seed}")
+    _check_seeds(cfg.seeds, "seeds")
     if cfg.total_frames is not None and cfg.total_frames <= 0:
         raise ConfigError(f"total_frames: expected a positive number of frames, got {cfg.total_frames}")
     if cfg.output is not None and not cfg.output.strip():
@@ -149,6 +148,8 @@ def _validate_suite(cfg: SuiteConfig) -> None:
         if entry.label in seen:
             raise ConfigError(f"entries[{i}].label: {entry.label!r} is used twice")
         seen.add(entry.label)
+        if entry.seeds is not None:
+            _check_seeds(entry.seeds, f"entries[{i}].seeds")
         if is_chain(entry.recipe):
             _check_chain_entry(cfg, i, entry)
         elif entry.envs is not None:
@@ -157,6 +158,14 @@ def _validate_suite(cfg: SuiteConfig) -> None:
             _check_envs(entry.envs, f"entries[{i}].envs")
     if cfg.evaluate != EvaluateConfig():
         check_evaluate(cfg.evaluate, [e.label for e in cfg.entries])
+
+
+def _check_seeds(seeds: list[int], where: str) -> None:
+    if not seeds:
+        raise ConfigError(f"{where}: a suite needs at least one seed")
+    for i, seed in enumerate(seeds):
+        if seed < 0 or seeds.index(seed) != i:
+            raise ConfigError(f"{where}[{i}]: expected distinct seeds >= 0, got {seed}")
 
 
 def _check_chain_entry(cfg: SuiteConfig, i: int, entry: SuiteEntry) -> None:
@@ -274,11 +283,12 @@ def plan_suite(path: str | Path, output: str | Path | None = None) -> tuple[Suit
     runs = []
     for entry in suite.entries:
         recipe = path.parent / entry.recipe
+        seeds = entry.seeds if entry.seeds is not None else suite.seeds
         if is_chain(recipe):
-            runs += [_plan_chain_run(suite, entry, recipe, seed, root) for seed in suite.seeds]
+            runs += [_plan_chain_run(suite, entry, recipe, seed, root) for seed in seeds]
             continue
         envs: list[str | None] = list(entry.envs if entry.envs is not None else suite.envs) or [None]
-        runs += [_plan_run(suite, entry, recipe, env, seed, root) for env in envs for seed in suite.seeds]
+        runs += [_plan_run(suite, entry, recipe, env, seed, root) for env in envs for seed in seeds]
     return suite, root, runs
 
 
