@@ -25,7 +25,8 @@ def test_every_shipped_suite_plans(path, tmp_path):
     """What ``freamer-rl suite <file> --dry-run`` checks: every run's config loads (trainer, overrides, env id)."""
     suite, root, runs = plan_suite(path, tmp_path / "out")
     assert root == tmp_path / "out"
-    assert len(runs) == len(suite.entries) * len(suite.seeds) * max(1, len(suite.envs))
+    seeds = sum(len(e.seeds if e.seeds is not None else suite.seeds) for e in suite.entries)  # an entry's own seeds
+    assert len(runs) == seeds * max(1, len(suite.envs))
     assert [r.error for r in runs if r.error] == []
     assert {row["status"] for row in describe(runs)} == {"new"}
     if suite.total_frames is not None:  # an entry's own run.total_frames override wins over the suite's
