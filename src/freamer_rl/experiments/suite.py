@@ -162,7 +162,7 @@ def _validate_suite(cfg: SuiteConfig) -> None:
 
 def _check_seeds(seeds: list[int], where: str) -> None:
     if not seeds:
-        raise ConfigError(f"{where}: a suite needs at least one seed")
+        raise ConfigError(f"{where}: expected at least one seed (an empty list trains nothing)")
     for i, seed in enumerate(seeds):
         if seed < 0 or seeds.index(seed) != i:
             raise ConfigError(f"{where}[{i}]: expected distinct seeds >= 0, got {seed}")
