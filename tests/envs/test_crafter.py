@@ -112,10 +112,15 @@ def test_same_seed_and_actions_give_the_same_pixels():
 @needs_crafter
 def test_unseeded_envs_do_not_share_numpys_global_state():
     """Forked workers share numpy's global random state: unseeded envs must not draw crafter's seed from it."""
+    # compared by crafter's own world seed: two different worlds can show the same first frame (a player spawned
+    # on open grass sees grass either way), which made a comparison of frames fail now and then
     np.random.seed(0)
-    first = make_crafter_env().reset()["pixels"]
+    first = make_crafter_env()
+    first.reset()
     np.random.seed(0)
-    assert not torch.equal(make_crafter_env().reset()["pixels"], first)
+    second = make_crafter_env()
+    second.reset()
+    assert first._env._seed != second._env._seed
 
 
 @needs_crafter
