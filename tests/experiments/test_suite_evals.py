@@ -104,7 +104,6 @@ def test_a_committed_run_without_checkpoints_keeps_its_evaluations(tmp_path):
     (evals / "g.json").write_text(json.dumps({**kept["g"], "checkpoint_frames": 64}))
     assert [e["status"] for e in describe_evaluations(suite.evaluate, runs)] == ["done", "stale"]
     (evals / "g.json").write_text(json.dumps(kept["g"]))
-    shutil.copy(ROOT / "recipes" / "tiny.yaml", tmp_path / "tiny.yaml")
     out = run_suite(tmp_path / "early.yaml", jobs=1, output=tmp_path)
     assert out["trained"] == [] and out["evaluated"] == [] and out["eval_failed"] == []
     assert {c: json.loads((evals / f"{c}.json").read_text()) for c in kept} == kept
