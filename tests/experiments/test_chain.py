@@ -108,12 +108,60 @@ def test_chain_trains_stages_in_order_and_resumes(tmp_path):
         ("  - {name: a, recipe: tiny.yaml}\n  - {name: a, recipe: tiny.yaml}\n", "'a' is used twice"),
         ("  - {name: ../a, recipe: tiny.yaml}\n", r"stages\[0\].name"),
         ("  []\n", "at least one stage"),
+        ("  - {name: a}\n", r"stages\[0\].recipe: missing"),
     ],
 )
 def test_chain_file_errors_name_the_field(tmp_path, stages, message):
     (tmp_path / "sub").mkdir()
     with pytest.raises(ConfigError, match=message):
         load_chain(_write_chain(tmp_path / "sub", stages))
+
+
+def _write_shared_recipe_chain(folder: Path) -> Path:
+    """Two stages with no recipe of their own: the chain's ``recipe`` (tiny FreamerV1) for both."""
+    shutil.copy(TINY, folder / "tiny.yaml")
+    (folder / "mlp.yaml").write_text(
+        "trainer: ppo_baseline\nenv: {adapter: minigrid, id: MiniGrid-Empty-5x5-v0, num_envs: 2}\n"
+        "network: {kind: mlp, observation_keys: [grid, direction], hidden: 16}\n"
+        "ppo: {frames_per_batch: 64, minibatch_size: 32, epochs: 1}\nrun: {total_frames: 128}\n"
+        "logging: {progress_bar: false}\n"
+    )
+    path = folder / "c.chain.yaml"
+    path.write_text(
+        f"name: demo\nseed: 3\noutput_dir: {folder / 'runs'}\nrecipe: tiny.yaml\nstages:\n"
+        "  - {name: empty}\n  - {name: rooms, overrides: [env.id=MiniGrid-MultiRoom-N1-S4-v0]}\n"
+    )
+    return path
+
+
+def test_a_chains_recipe_trains_every_stage_and_one_override_swaps_the_agent(tmp_path):
+    """``recipe:`` names every stage's recipe; ``recipe=`` (a chain-file field) puts another agent through the same
+    stages, each keeping its env id and transferring its weights; rerunning it into the folder the first agent's
+    stages finished in is refused, not read back as if the new agent had trained them."""
+    path = _write_shared_recipe_chain(tmp_path)
+    rows = run_chain(path)
+    root = tmp_path / "runs" / "demo-s3"
+    assert [r["env"] for r in rows] == ["MiniGrid-Empty-5x5-v0", "MiniGrid-MultiRoom-N1-S4-v0"]
+    assert "model:" in (root / "rooms" / "config.yaml").read_text()
+    with pytest.raises(ConfigError, match=r"stages\[0\] \(empty\): .*finished with another config .*network: "):
+        run_chain(path, ["recipe=mlp.yaml"])
+    rows = run_chain(path, ["recipe=mlp.yaml", f"output_dir={tmp_path / 'mlp_runs'}"])
+    stage = tmp_path / "mlp_runs" / "demo-s3" / "rooms"
+    assert [r["frames"] for r in rows] == [128, 128] and rows[1]["env"] == "MiniGrid-MultiRoom-N1-S4-v0"
+    config_text = (stage / "config.yaml").read_text()
+    assert "network:" in config_text and f"init_from: {stage.parent / 'empty'}" in config_text
+    assert json.loads((stage / "summary.json").read_text())["trainer"] == "ppo_baseline"
+
+
+def test_a_chain_names_one_recipe_for_every_stage_or_one_per_stage(tmp_path):
+    path = _write_shared_recipe_chain(tmp_path)
+    path.write_text(path.read_text().replace("{name: empty}", "{name: empty, recipe: tiny.yaml}"))
+    with pytest.raises(ConfigError, match=r"stages\[0\].recipe: 'tiny.yaml' beside the chain's recipe"):
+        load_chain(path)
+    with pytest.raises(ConfigError, match=r"^recipe: no such recipe file"):
+        load_chain(_write_shared_recipe_chain(tmp_path), ["recipe=missing.yaml"])
+    with pytest.raises(ConfigError, match=r"^recipe: '../tiny.yaml' leaves the chain file's folder"):
+        load_chain(path, ["recipe=../tiny.yaml", "stages=[{name: a}]"])
 
 
 @pytest.mark.parametrize("chain", CHAINS, ids=[c.name for c in CHAINS])

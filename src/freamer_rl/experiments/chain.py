@@ -10,16 +10,21 @@ A chain file is YAML::
       - {name: n2s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [run.stop_at_success=0.9]}
       - {name: n3s4, recipe: minigrid_multiroom_n2s4.yaml, overrides: [env.id=MiniGrid-MultiRoom-N3-S4-v0]}
 
+A chain may instead name one ``recipe`` for every stage (then no stage names its own), so that the same curriculum
+trains another agent with one override: ``freamer-rl chain FILE recipe=baselines/ppo_mlp_n2s4.yaml`` (or a suite
+entry's ``overrides: [recipe=...]``), every stage keeping its env id, frame cap and stop rule.
+
 Stage recipes are paths relative to the chain file's folder and must stay inside it; transfer (``run.init_from``)
 is a setting of the MiniGrid / gymnasium trainer, so chains of health recipes stop at stage 2 with one error line. Stage ``k`` trains in
 ``<output_dir>/<name>-s<seed>/<stage name>`` with ``run.init_from`` set to stage ``k-1``'s run directory (transfer:
 weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its ``summary.json`` written after its
-last checkpoint) is read back, an interrupted one resumes from its checkpoint. ``chain_summary.json`` /
+last checkpoint, with the weights' sections this chain asks for: else a ConfigError) is read back, an interrupted one
+resumes from its checkpoint. ``chain_summary.json`` /
 ``chain_summary.md`` list every stage with the frames counted across the chain (a curriculum's earlier stages count
 towards its budget).
 
 Overrides on the command line follow one rule: a key that is a chain-file field (``name``, ``seed``, ``output_dir``,
-``overrides``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to every stage,
+``overrides``, ``recipe``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to every stage,
 after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
 every stage for a smoke test). ``run.seed`` is always the chain's ``seed``. The output folder is checked writable
 before the first stage; one overall progress bar (a log line per stage off a terminal) gives the ETA.
@@ -37,11 +42,14 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+import yaml
+
 from freamer_rl.config.checks import run_name_problem
-from freamer_rl.config.loader import VALIDATORS, config_from_dict, read_recipe
+from freamer_rl.config.loader import VALIDATORS, config_from_dict, config_to_dict, read_recipe
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.folders import prepare_output_folder
 from freamer_rl.experiments.progress import OverallProgress
+from freamer_rl.run.checkpoint import structural_differences
 from freamer_rl.run.metrics import SUCCESS_LEVELS
 from freamer_rl.trainers.registry import get_trainer, load_recipe
 
@@ -66,7 +74,7 @@ CHAIN_SUFFIX = ".chain.yaml"
 @dataclass
 class StageConfig:
     name: str
-    recipe: str  # relative to the chain file's folder
+    recipe: str | None = None  # relative to the chain file's folder; None: the chain's ``recipe``
     overrides: list[str] = field(default_factory=list)
 
 
@@ -77,6 +85,7 @@ class ChainConfig:
     seed: int = 0
     output_dir: str = "runs"
     overrides: list[str] = field(default_factory=list)
+    recipe: str | None = None  # every stage's recipe, when no stage names its own
 
 
 def _validate_chain(cfg: ChainConfig) -> None:
@@ -91,6 +100,13 @@ def _validate_chain(cfg: ChainConfig) -> None:
         if stage.name in seen:
             raise ConfigError(f"stages[{i}].name: {stage.name!r} is used twice")
         seen.add(stage.name)
+        if stage.recipe is None and cfg.recipe is None:
+            raise ConfigError(f"stages[{i}].recipe: missing; name one here or one for every stage (recipe:)")
+        if stage.recipe is not None and cfg.recipe is not None:
+            raise ConfigError(
+                f"stages[{i}].recipe: {stage.recipe!r} beside the chain's recipe {cfg.recipe!r}; a chain names one "
+                "recipe for every stage or one per stage, not both"
+            )
 
 
 VALIDATORS[ChainConfig] = _validate_chain
@@ -101,17 +117,18 @@ def load_chain(path: str | Path, overrides: list[str] | None = None) -> ChainCon
     path = Path(path)
     cfg = config_from_dict(read_recipe(path, overrides), ChainConfig)
     for i, stage in enumerate(cfg.stages):
-        _stage_recipe(path, stage, i)  # every recipe exists and stays in the folder before anything trains
+        _stage_recipe(path, stage, i, cfg.recipe)  # every recipe exists and stays in the folder before anything trains
     return cfg
 
 
-def _stage_recipe(chain_path: Path, stage: StageConfig, index: int) -> Path:
+def _stage_recipe(chain_path: Path, stage: StageConfig, index: int, default: str | None) -> Path:
     folder = chain_path.resolve().parent
-    recipe = (folder / stage.recipe).resolve()
+    name, where = (stage.recipe, f"stages[{index}].recipe") if stage.recipe is not None else (default, "recipe")
+    recipe = (folder / name).resolve()
     if not recipe.is_relative_to(folder):
-        raise ConfigError(f"stages[{index}].recipe: {stage.recipe!r} leaves the chain file's folder {folder}")
+        raise ConfigError(f"{where}: {name!r} leaves the chain file's folder {folder}")
     if not recipe.is_file():
-        raise ConfigError(f"stages[{index}].recipe: no such recipe file: {recipe}")
+        raise ConfigError(f"{where}: no such recipe file: {recipe}")
     return recipe
 
 
@@ -146,7 +163,7 @@ def _stage_plans(path: Path, cfg: ChainConfig, root: Path, stage_overrides: list
     plans = []
     for i, stage in enumerate(cfg.stages):
         given = [*cfg.overrides, *stage.overrides, *stage_overrides, f"run.seed={cfg.seed}"]
-        plans.append((stage, _stage_recipe(path, stage, i), root / stage.name, given))
+        plans.append((stage, _stage_recipe(path, stage, i, cfg.recipe), root / stage.name, given))
     return plans
 
 
@@ -220,6 +237,7 @@ def run_chain(
                 if progress is not None:
                     progress.advance(todo.index(i), f"stage {stage.name} done: {int(summary['frames']):,} frames")
             else:
+                _check_finished_stage(run_dir, recipe, given, f"stages[{i}] ({stage.name})")
                 logger.info("chain %s: stage %s already finished, read back", cfg.name, stage.name)
             rows.append(_stage_row(stage.name, summary, total, run_dir))
             total += int(summary["frames"])
@@ -228,6 +246,23 @@ def run_chain(
             progress.close()
     _write_summary(root, cfg, rows)
     return rows
+
+
+def _check_finished_stage(run_dir: Path, recipe: Path, given: list[str], where: str) -> None:
+    """ConfigError when a finished stage was trained with other weights' sections than this chain asks for (e.g. the
+    same chain rerun with ``recipe=`` another agent into the same folder), instead of reading its summary back."""
+    name, stage_cfg = load_recipe(recipe, given)
+    saved_file = run_dir / "config.yaml"
+    saved = yaml.safe_load(saved_file.read_text()) if saved_file.is_file() else None
+    if not isinstance(saved, dict):
+        raise ConfigError(f"{where}: {saved_file} is missing or unreadable; cannot tell what {run_dir} trained")
+    defaults = config_to_dict(type(stage_cfg)())  # fields a later release added were at their defaults then
+    diffs = structural_differences(saved, config_to_dict(stage_cfg), get_trainer(name).structural, defaults)
+    if diffs:
+        raise ConfigError(
+            f"{where}: {run_dir} finished with another config ({'; '.join(diffs[:3])}); "
+            "give this chain another output_dir"
+        )
 
 
 def _stage_row(name: str, summary: dict[str, Any], frames_before: int, run_dir: Path) -> dict[str, Any]:
