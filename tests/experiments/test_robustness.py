@@ -127,7 +127,12 @@ def test_report_numbers_on_synthetic_runs(tmp_path):
                 "grid_salt_0.5": {"return_mean": 0.5 * r_grid[label][seed], **gates},
                 "mission_drop_0.5": {"return_mean": 0.5 * r_mission[label][seed], **gates},
             }
-            summary = {"final_success_rate": success[seed], "episodes_to_95": to95[label][seed]}
+            frames95 = None if to95[label][seed] is None else 32 * to95[label][seed]
+            summary = {
+                "final_success_rate": success[seed],
+                "episodes_to_95": to95[label][seed],
+                "frames_to_95": frames95,
+            }
             _fake_run(out, label, seed, summary, evals)
     result = run_suite(path, output=out, report_only=True)
     assert result["trained"] == [] and result["evaluated"] == []
@@ -149,8 +154,8 @@ def test_report_numbers_on_synthetic_runs(tmp_path):
     summary = (out / "summary.md").read_text()
     a_row = next(line for line in summary.splitlines() if line.startswith("| a |"))
     b_row = next(line for line in summary.splitlines() if line.startswith("| b |"))
-    assert "| 0.800 [" in a_row and "| 300 [" in a_row
-    assert "4/5 seeds reached" in b_row and "[100 / 200 / — / 400 / 500]" in b_row
+    assert "| 0.800 [" in a_row and "| 300 [" in a_row and "| 9,600 [" in a_row  # frames to 95%: IQM of 32x
+    assert b_row.count("4/5 seeds reached") == 2 and "[100 / 200 / — / 400 / 500]" in b_row
 
     for group in ("grid_salt", "mission_tokens_dropout"):
         assert _is_png(out / f"robustness_{group}.png")

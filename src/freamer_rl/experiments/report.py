@@ -382,9 +382,10 @@ def summary_rows(results: list[dict]) -> list[dict[str, Any]]:
         row["return_mean_per_seed"] = " / ".join(
             "—" if _missing(r.get("return_mean")) else f"{r['return_mean']:.2f}" for r in done
         )
-        # episodes to 95%: only when every seed reached it (an IQM of the reached ones would flatter the arm)
-        reached = row["episodes_to_95_reached"]
-        _add_iqm(row, env, "episodes_to_95", [r.get("episodes_to_95") for r in done] if reached == len(done) else [])
+        # episodes and frames to 95%: only when every seed reached it (an IQM of the reached ones would flatter the arm)
+        for key in ("episodes_to_95", "frames_to_95"):
+            every = row[f"{key}_reached"] == len(done)
+            _add_iqm(row, env, key, [r.get(key) for r in done] if every else [])
         out.append(row)
     return out
 
@@ -437,14 +438,18 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
     targets = sorted({r["return_target"] for r in rows if r.get("return_target") is not None})
     head += [f"frames to return {t:g} [per seed]" for t in targets]
     head += ["frames/s", "trainable params"]
-    head += ["final success IQM [95% CI]", "episodes to 95% IQM [95% CI]"] if has_success else []
+    head += (
+        ["final success IQM [95% CI]", "episodes to 95% IQM [95% CI]", "frames to 95% IQM [95% CI]"]
+        if has_success
+        else []
+    )
     head += [] if has_success else ["final return IQM [95% CI] [per seed]"]
     note = (
         "Final values: mean (min–max) across the seeds done; to X%: the exact episode (and its frame) at which the "
         "trailing 100-episode success rate first reached X, as the mean of the seeds that reached it, then each "
         "seed's value (— not reached; n/a: its summary.json predates the record); frames to return: the same for "
         "the trailing 100-episode mean return. IQM: interquartile mean over the seeds done with a 95% "
-        "stratified-bootstrap interval (episodes to 95% only when every seed reached it)."
+        "stratified-bootstrap interval (episodes and frames to 95% only when every seed reached it)."
     )
     lines = [
         f"# Suite {name}",
@@ -465,7 +470,8 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
         cells += [_to95(r, k) for k in ("episodes_to_95", "frames_to_95", "frames_to_80")] if has_success else []
         cells += [_to95(r, "frames_to_return") if r.get("return_target") == t else "" for t in targets]
         cells += [_cell(r, "fps", 0), _cell(r, "trainable_params", 0)]
-        cells += [_iqm_cell(r, "success_rate", 3), _iqm_cell(r, "episodes_to_95", 0)] if has_success else []
+        if has_success:
+            cells += [_iqm_cell(r, k, d) for k, d in (("success_rate", 3), ("episodes_to_95", 0), ("frames_to_95", 0))]
         if not has_success:  # tasks scored by their return (CartPole, Pendulum, Crafter): its IQM and every seed's
             cells += [f"{_iqm_cell(r, 'return_mean', 2)} [{r['return_mean_per_seed']}]" if r["seeds_done"] else ""]
         lines.append("| " + " | ".join(cells) + " |")
