@@ -224,13 +224,15 @@ def test_chain_run_report_counts_to_95_across_the_stages(tmp_path):
     for name, (frames, episodes, f95, e95) in stages.items():
         (run_dir / name).mkdir(parents=True)
         summary = {"frames": frames, "episodes": episodes, "frames_to_95": f95, "episodes_to_95": e95}
-        (run_dir / name / "summary.json").write_text(json.dumps({**summary, "final_success_rate": 0.97}))
+        extra = {"final_success_rate": 0.97, "trainable_params": 1234, "privileged": ["x"] if name == "a" else []}
+        (run_dir / name / "summary.json").write_text(json.dumps({**summary, **extra}))
         (run_dir / name / "progress.csv").write_text(f"frames,episodes,success_rate\n{frames},{episodes},0.97\n")
     (run_dir / "done.json").write_text(json.dumps({"total_frames": 1500, "frames": 1500}))
     record = RunRecord(label="c", env="e", env_dir="e", seed=0, run_dir=run_dir, target_frames=1500, stages=["a", "b"])
     (row,) = write_report(tmp_path, "demo", [record])
     assert (row["frames"], row["episodes"], row["frames_to_95"], row["episodes_to_95"]) == (1500, 50, 1300, 46)
     assert row["success_rate"] == 0.97 and [(r["frames"], r["episodes"]) for r in row["rows"]] == [(1500, 50)]
+    assert row["trainable_params"] == 1234 and row["privileged"] == "x"  # the model's size; any stage's privilege
 
 
 def test_an_entry_with_its_own_seeds(tmp_path):

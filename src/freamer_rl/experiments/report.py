@@ -209,7 +209,11 @@ def _chain_view(rec: RunRecord) -> tuple[dict, list[dict]]:
     frames_before = sum(v[2] for v in views[:-1])
     episodes_before = sum(v[3] for v in views[:-1])
     last, rows, _, _ = views[-1]
-    summary = {k: v for k, v in last.items() if k in ("final_success_rate", "final_return_mean", "crafter_score")}
+    kept = ("final_success_rate", "final_return_mean", "crafter_score", "trainable_params")
+    summary = {k: v for k, v in last.items() if k in kept}
+    privileged = sorted({p for v in views for p in v[0].get("privileged") or []})  # any stage's
+    if privileged:
+        summary["privileged"] = privileged
     summary["episodes"] = episodes_before + views[-1][3]
     for key in LEVEL_KEYS:
         if key in last:
