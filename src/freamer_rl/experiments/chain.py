@@ -19,13 +19,12 @@ is a setting of the MiniGrid / gymnasium trainer, so chains of health recipes st
 ``<output_dir>/<name>-s<seed>/<stage name>`` with ``run.init_from`` set to stage ``k-1``'s run directory (transfer:
 weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its ``summary.json`` written after its
 last checkpoint, with the weights' sections this chain asks for: else a ConfigError) is read back, an interrupted one
-resumes from its checkpoint. ``chain_summary.json`` /
-``chain_summary.md`` list every stage with the frames counted across the chain (a curriculum's earlier stages count
+resumes from its checkpoint. ``chain_summary.json`` / ``chain_summary.md`` list every stage with the frames counted across the chain (a curriculum's earlier stages count
 towards its budget).
 
 Overrides on the command line follow one rule: a key that is a chain-file field (``name``, ``seed``, ``output_dir``,
-``overrides``, ``recipe``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to every stage,
-after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
+``overrides``, ``recipe``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to
+every stage, after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
 every stage for a smoke test). ``run.seed`` is always the chain's ``seed``. The output folder is checked writable
 before the first stage; one overall progress bar (a log line per stage off a terminal) gives the ETA.
 
