@@ -14,19 +14,20 @@ A chain may instead name one ``recipe`` for every stage (then no stage names its
 trains another agent with one override: ``freamer-rl chain FILE recipe=baselines/ppo_mlp_n2s4.yaml`` (or a suite
 entry's ``overrides: [recipe=...]``), every stage keeping its env id, frame cap and stop rule.
 
-Stage recipes are paths relative to the chain file's folder and must stay inside it; transfer (``run.init_from``)
-is a setting of the MiniGrid / gymnasium trainer, so chains of health recipes stop at stage 2 with one error line. Stage ``k`` trains in
-``<output_dir>/<name>-s<seed>/<stage name>`` with ``run.init_from`` set to stage ``k-1``'s run directory (transfer:
-weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its ``summary.json`` written after its
-last checkpoint, with the weights' sections this chain asks for: else a ConfigError) is read back, an interrupted one
-resumes from its checkpoint. ``chain_summary.json`` / ``chain_summary.md`` list every stage with the frames counted across the chain (a curriculum's earlier stages count
-towards its budget).
+Stage recipes are paths relative to the chain file's folder and must stay inside it; transfer (``run.init_from``) is a
+setting of the MiniGrid / gymnasium trainer, so chains of health recipes stop at stage 2 with one error line. Stage
+``k`` trains in ``<output_dir>/<name>-s<seed>/<stage name>`` with ``run.init_from`` set to stage ``k-1``'s run
+directory (transfer: weights only). ``freamer-rl chain <file>`` is resumable: a finished stage (its ``summary.json``
+written after its last checkpoint, with the weights' sections this chain asks for: else a ConfigError) is read back,
+an interrupted one resumes from its checkpoint. ``chain_summary.json`` / ``chain_summary.md`` list every stage with
+the frames counted across the chain (a curriculum's earlier stages count towards its budget).
 
 Overrides on the command line follow one rule: a key that is a chain-file field (``name``, ``seed``, ``output_dir``,
 ``overrides``, ``recipe``, ``stages``) edits the chain file (``freamer-rl chain FILE seed=1``); any other key goes to
-every stage, after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE run.total_frames=2048`` shrinks
-every stage for a smoke test). ``run.seed`` is always the chain's ``seed``. The output folder is checked writable
-before the first stage; one overall progress bar (a log line per stage off a terminal) gives the ETA.
+every stage, after the chain's and the stage's own overrides, so it wins (``freamer-rl chain FILE
+run.total_frames=2048`` shrinks every stage for a smoke test). ``run.seed`` is always the chain's ``seed``. The output
+folder is checked writable before the first stage; one overall progress bar (a log line per stage off a terminal)
+gives the ETA.
 
 A benchmark suite (:mod:`freamer_rl.experiments.suite`) runs a chain as one of its entries: a recipe path ending in
 ``.chain.yaml`` (:func:`is_chain`) is a chain, trained by :func:`run_chain` with ``root=`` the suite's run folder and
