@@ -88,6 +88,13 @@ def _parser() -> argparse.ArgumentParser:
     p_suite.add_argument("--output", default=None, help="results folder (default: the suite's output, results/<name>)")
     p_suite.add_argument("--report-only", action="store_true", help="rebuild tables and plots without training")
     p_suite.add_argument("--dry-run", action="store_true", help="list the runs and their status; train nothing")
+    p_suite.add_argument(
+        "--only",
+        action="append",
+        default=None,
+        metavar="LABEL",
+        help="train (and evaluate) only this entry; repeat for more; the report still covers every run",
+    )
 
     p_eval = sub.add_parser("eval", help="evaluate a checkpoint of any domain")
     p_eval.add_argument("checkpoint", help="a checkpoint .pt file or a run directory (uses its latest checkpoint)")
@@ -168,7 +175,7 @@ def _suite(args: argparse.Namespace) -> int:
     if args.dry_run:
         sys.stdout.write(dry_run_listing(args.suite, args.output))
         return 0
-    result = run_suite(args.suite, jobs=args.jobs, output=args.output, report_only=args.report_only)
+    result = run_suite(args.suite, jobs=args.jobs, output=args.output, report_only=args.report_only, only=args.only)
     sys.stdout.write(f"{Path(result['output']) / 'summary.md'}\n")
     if result["failed"]:
         sys.stderr.write(

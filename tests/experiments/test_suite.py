@@ -249,3 +249,28 @@ def test_an_entry_with_its_own_seeds(tmp_path):
     assert len(result["trained"]) == 5
     summary = (tmp_path / "out" / "summary.md").read_text()
     assert f"| a | {ENV} | 2/2 (0 1) |" in summary and f"| more | {ENV} | 3/3 (0 1 2) |" in summary
+
+
+def test_only_trains_the_named_entries_and_reports_every_run(tmp_path, capsys):
+    # a long suite in parts: --only trains the named entries; the others stay new, and the report lists them all
+    path = _suite(
+        tmp_path,
+        "  - {label: a, recipe: tiny.yaml}\n  - {label: b, recipe: tiny.yaml}\n  - {label: c, recipe: tiny.yaml}\n",
+        total_frames=128,
+    )
+    out = tmp_path / "out"
+    assert main(["suite", str(path), "--output", str(out), "--only", "c", "--only", "a"]) == 0
+    runs = {(r["label"], r["seed"]): r["status"] for r in _rows(out / "runs.csv")}
+    assert runs == {
+        ("a", "0"): "done",
+        ("a", "1"): "done",
+        ("b", "0"): "new",
+        ("b", "1"): "new",
+        ("c", "0"): "done",
+        ("c", "1"): "done",
+    }
+    assert not (out / "runs" / "b").exists()
+    capsys.readouterr()
+    assert main(["suite", str(path), "--output", str(out), "--only", "d"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--only: no entry labelled d" in err and "a, b, c" in err

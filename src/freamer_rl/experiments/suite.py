@@ -478,10 +478,30 @@ def dry_run_listing(path: str | Path, output: str | Path | None = None) -> str:
     return "\n".join(lines) + "\n"
 
 
+def select_entries(runs: list[SuiteRun], only: list[str] | None, suite: SuiteConfig) -> list[SuiteRun]:
+    """The runs of the entries labelled in ``only`` (``--only``; None: every run); an unknown label is one error
+    naming it and the suite's labels."""
+    if only is None:
+        return runs
+    labels = [e.label for e in suite.entries]
+    unknown = [label for label in only if label not in labels]
+    if unknown:
+        raise ConfigError(
+            f"--only: no entry labelled {', '.join(unknown)} in suite {suite.name}; its labels: {', '.join(labels)}"
+        )
+    return [r for r in runs if r.label in only]
+
+
 def run_suite(
-    path: str | Path, *, jobs: int = 1, output: str | Path | None = None, report_only: bool = False
+    path: str | Path,
+    *,
+    jobs: int = 1,
+    output: str | Path | None = None,
+    report_only: bool = False,
+    only: list[str] | None = None,
 ) -> dict[str, Any]:
-    """Train every run not yet done (``report_only``: none), then write the report.
+    """Train every run not yet done (``report_only``: none), then write the report. ``only``: train and evaluate
+    just the entries with these labels (the report still covers every run).
 
     With an ``evaluate`` section, every done run is evaluated under its conditions (those not yet evaluated for
     the run's final checkpoint; each run as soon as it is done, in the same workers) and the robustness report is
@@ -493,6 +513,7 @@ def run_suite(
     if jobs < 1:
         raise ConfigError(f"--jobs: expected at least 1, got {jobs}")
     suite, root, runs = plan_suite(path, output)
+    selected = select_entries(runs, only, suite)
     field_name = "--output" if output is not None else "output"
     prepare_output_folder(root, field_name)  # before anything trains
     with _lock_results(root, field_name):
@@ -500,13 +521,13 @@ def run_suite(
         if not report_only:
             with worker_pool(jobs) as pool:  # workers start on demand: none when nothing is left to do
                 queue = EvaluationQueue(pool, suite.evaluate, suite.name) if suite.evaluate.conditions else None
-                trained = _train_missing(pool, suite, root, runs, jobs, queue)
+                trained = _train_missing(pool, suite, root, selected, jobs, queue)
                 if queue is not None:
-                    evaluated, eval_failed, lost = queue.finish(runs)
+                    evaluated, eval_failed, lost = queue.finish(selected)
                     if lost:  # a worker died (killed, out of memory): fresh workers for what was lost
                         with worker_pool(jobs) as fresh:
                             again = EvaluationQueue(fresh, suite.evaluate, suite.name, record_lost=True)
-                            more, eval_failed, lost = again.finish(runs)
+                            more, eval_failed, lost = again.finish(selected)
                             evaluated += more
                         if lost:
                             logger.warning("suite %s: evaluations lost again (a worker died); rerun", suite.name)
