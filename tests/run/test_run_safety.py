@@ -32,7 +32,14 @@ from freamer_rl.run.checkpoint import (
     to_plain,
 )
 from freamer_rl.run.loop import default_run_name
-from freamer_rl.run.rundir import RunDirLock, Terminated, interrupt_in_chain, surfaced_interrupts
+from freamer_rl.run.rundir import (
+    RunDirLock,
+    Terminated,
+    catch_sigterm,
+    interrupt_in_chain,
+    restore_sigterm,
+    surfaced_interrupts,
+)
 from freamer_rl.trainers.minigrid_ppo import Trainer
 from freamer_rl.trainers.registry import load_config
 
@@ -417,6 +424,52 @@ def test_sigterm_inside_a_library_that_raises_its_own_error_still_checkpoints(tm
     resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
     assert resumed.frames == 128 and resumed.resumed_from is not None
     resumed.life.lock.release()
+
+
+def test_a_sigterm_that_a_library_swallows_still_stops_the_run_at_the_batch_end(tmp_path, monkeypatch, caplog):
+    # seen in a suite worker: a library caught the first Terminated whole, the run trained on, and every later
+    # SIGTERM was ignored as "already stopping"; now the loop stops at the batch end and checkpoints there
+    run = tmp_path / "run"
+    trainer = Trainer(tiny_cfg("run.total_frames=384", "logging.checkpoint_every_frames=100000"), run)
+    real_update, calls = trainer._update, []
+
+    def swallowed_on_second_batch(data):
+        calls.append(1)
+        if len(calls) == 2:
+            try:
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)  # the handler raises Terminated here
+            except BaseException:  # noqa: BLE001 -- the library that swallows everything
+                pass
+        return real_update(data)
+
+    monkeypatch.setattr(trainer, "_update", swallowed_on_second_batch)
+    with pytest.raises(Terminated):
+        trainer.train()
+    assert len(calls) == 2, "stopped at the end of the batch that swallowed the SIGTERM"
+    assert "caught inside a library and did not stop the run" in caplog.text
+    assert "terminated by SIGTERM at 256 frames; saved" in caplog.text
+    resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
+    assert resumed.frames == 256 and resumed.resumed_from is not None
+    resumed.life.lock.release()
+
+
+def test_a_second_sigterm_raises_until_the_trainer_is_stopping_then_waits_for_the_checkpoint(caplog):
+    token = catch_sigterm()
+    try:
+        for _ in range(2):  # the first swallowed: the second raises again instead of being ignored
+            with pytest.raises(Terminated):
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(5)
+        assert token.fired and token.swallowed == 1
+        assert "the first did not stop the run" in caplog.text
+        token.stopping_now()  # the trainer writes its checkpoint: later SIGTERMs are logged and ignored
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(0.05)
+        assert "already stopping, finishing the checkpoint first" in caplog.text
+        token.raise_if_fired()  # nothing left to raise once the trainer is stopping
+    finally:
+        restore_sigterm(token)
 
 
 def test_cli_exits_143_on_sigterm(tmp_path, monkeypatch, capsys, caplog):

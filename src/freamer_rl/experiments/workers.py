@@ -89,6 +89,8 @@ def worker_pool(jobs: int) -> Iterator[ProcessPoolExecutor]:
     try:
         yield pool
     except KeyboardInterrupt as err:
+        if token is not None:  # later SIGTERMs wait for the workers' checkpoints
+            token.stopping_now()
         stop.set()  # the jobs already queued to a worker return at once (cancel_futures cannot reach those)
         if isinstance(err, Terminated):
             for process in list(getattr(pool, "_processes", {}).values()):

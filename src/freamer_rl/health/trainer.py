@@ -400,7 +400,9 @@ class HealthTrainer:
                             "rec": format_rate(row.get("wm_loss_rec", math.nan)),
                         },
                     )
+                    self.life.check_terminated()
         except KeyboardInterrupt as err:
+            self.life.stopping()
             self.life.interrupted(err, f"after iteration {self.iteration}", latest_checkpoint(self.run_dir))
             raise
         finally:

@@ -46,6 +46,7 @@ from freamer_rl.run.files import make_metrics_logger, write_run_files
 from freamer_rl.run.metrics import RETURN_SERIES, json_safe, plot_learning_curve, quiet_library_logs
 from freamer_rl.run.rundir import (
     RunDirLock,
+    SigtermToken,
     Terminated,
     catch_sigterm,
     restore_sigterm,
@@ -98,6 +99,7 @@ class RunLifecycle:
         self.checkpoint_path: Path | None = None  # the checkpoint open() returned
         self._wall_before = 0.0  # wall time of the earlier attempts (from the checkpoint)
         self.lock = RunDirLock(self.run_dir)
+        self._sigterm: SigtermToken | None = None  # while guard() runs
 
     # -- opening ------------------------------------------------------------------------------------------------------
     def open(self, resume: bool, refusal_hint: str) -> dict | None:
@@ -160,13 +162,20 @@ class RunLifecycle:
         """Around training: the lock held (re-taken for a second ``train()``), SIGTERM raising
         :class:`~freamer_rl.run.rundir.Terminated`, TorchRL's INFO lines hidden; all undone afterwards."""
         self.lock.acquire()  # no-op while the constructor's lock is held
-        sigterm = catch_sigterm()
+        self._sigterm = catch_sigterm()
         try:
             with quiet_library_logs(), surfaced_interrupts():
                 yield
         finally:
-            restore_sigterm(sigterm)
+            restore_sigterm(self._sigterm)
+            self._sigterm = None
             self.lock.release()
+
+    def check_terminated(self) -> None:
+        """Once per loop step inside :meth:`guard`: raise :class:`~freamer_rl.run.rundir.Terminated` if a SIGTERM
+        fired but a library swallowed it (the run would otherwise train on and ignore later SIGTERMs)."""
+        if self._sigterm is not None:
+            self._sigterm.raise_if_fired()
 
     def log_row(self, row: dict[str, Any], metrics: Any, step: int, *, to_logger: bool = True) -> None:
         """Keep ``row``, append it to progress.csv and (``to_logger``) send its finite numbers to ``metrics``."""
@@ -216,6 +225,11 @@ class RunLifecycle:
         )
         self.plot()
         return path
+
+    def stopping(self) -> None:
+        """The trainer caught Ctrl-C / SIGTERM and writes its checkpoint now: later SIGTERMs wait for it."""
+        if self._sigterm is not None:
+            self._sigterm.stopping_now()
 
     def interrupted(self, err: KeyboardInterrupt, where: str, saved: Path | None) -> None:
         """The warning of a Ctrl-C / SIGTERM stop (``where``: "at 1024 frames"); the caller re-raises."""

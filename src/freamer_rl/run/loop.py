@@ -355,8 +355,10 @@ class RunLoop:
                         next_ckpt += every
                     if self._should_stop():
                         break
+                    self.life.check_terminated()
         except KeyboardInterrupt as err:
             # keep everything learnt so far: rerunning the same command resumes from this checkpoint
+            self.life.stopping()
             self.life.interrupted(err, f"at {self.frames} frames", self._checkpoint())
             raise
         finally:

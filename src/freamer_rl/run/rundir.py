@@ -51,6 +51,7 @@ __all__ = [
     "catch_sigterm",
     "next_attempt_name",
     "restore_sigterm",
+    "SigtermToken",
     "run_name_problem",
     "write_rows_csv",
 ]
@@ -154,26 +155,55 @@ class Terminated(KeyboardInterrupt):
     """SIGTERM arrived: handled like Ctrl-C (checkpoint, then stop); the CLI exits with status 143."""
 
 
-def catch_sigterm() -> Any:
+class SigtermToken:
+    """What :func:`catch_sigterm` installed: the handler it replaced and where the stop stands.
+
+    ``fired``: a SIGTERM has raised :class:`Terminated`. ``stopping``: the trainer caught it and is writing its
+    checkpoint (:meth:`stopping_now`); until then a later SIGTERM raises again, since a library that catches every
+    exception inside its own ``try`` may have swallowed the first (seen in a suite worker: the run kept training and
+    ignored every later SIGTERM). :meth:`raise_if_fired` lets a loop stop at its next step in that case too."""
+
+    def __init__(self, previous: Any) -> None:
+        self.previous = previous
+        self.fired = False
+        self.stopping = False
+        self.swallowed = 0  # SIGTERMs that raised but did not reach the trainer
+
+    def stopping_now(self) -> None:
+        """The trainer caught the interrupt: later SIGTERMs are logged and ignored so that its checkpoint completes."""
+        self.stopping = True
+
+    def raise_if_fired(self) -> None:
+        """At a loop step: raise :class:`Terminated` again if a SIGTERM fired but never reached the trainer."""
+        if self.fired and not self.stopping:
+            self.swallowed += 1
+            logger.warning("SIGTERM was caught inside a library and did not stop the run; stopping at this step")
+            raise Terminated("SIGTERM")
+
+
+def catch_sigterm() -> SigtermToken | None:
     """Make SIGTERM raise :class:`Terminated` in the main thread; returns the token for :func:`restore_sigterm`.
 
-    Only the first SIGTERM raises: later ones (while the interrupt checkpoint is being written) are logged and
-    ignored so that the checkpoint completes. Outside the main thread signals cannot be handled: no-op.
+    Once the trainer is writing its interrupt checkpoint (:meth:`SigtermToken.stopping_now`), later SIGTERMs are
+    logged and ignored so that the checkpoint completes; before that each one raises. Outside the main thread
+    signals cannot be handled: no-op (None).
     """
     if threading.current_thread() is not threading.main_thread():
         return None
-    fired = False
+    token = SigtermToken(None)
 
     def handler(signum: int, frame: object) -> None:
-        nonlocal fired
-        if fired:
+        if token.stopping:
             logger.warning("SIGTERM again: already stopping, finishing the checkpoint first")
             return
-        fired = True
+        if token.fired:
+            token.swallowed += 1
+            logger.warning("SIGTERM again: the first did not stop the run (caught inside a library); raising again")
+        token.fired = True
         raise Terminated("SIGTERM")
 
-    previous = signal.signal(signal.SIGTERM, handler)
-    return ("installed", previous)
+    token.previous = signal.signal(signal.SIGTERM, handler)
+    return token
 
 
 def interrupt_in_chain(err: BaseException) -> KeyboardInterrupt | None:
@@ -207,8 +237,7 @@ def restore_sigterm(token: Any) -> None:
     """Put back the SIGTERM handler that :func:`catch_sigterm` replaced."""
     if token is None:
         return
-    previous = token[1]
-    signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+    signal.signal(signal.SIGTERM, token.previous if token.previous is not None else signal.SIG_DFL)
 
 
 # ----------------------------------------------------------------------------------------------------------------------
