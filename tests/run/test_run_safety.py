@@ -402,55 +402,48 @@ def test_an_error_caused_by_an_interrupt_is_raised_as_the_interrupt():
             raise ValueError("unrelated")
 
 
-def test_sigterm_inside_a_library_that_raises_its_own_error_still_checkpoints(tmp_path, monkeypatch, caplog):
-    run = tmp_path / "run"
-    trainer = Trainer(tiny_cfg("run.total_frames=384", "logging.checkpoint_every_frames=100000"), run)
-    real_update, calls = trainer._update, []
-
-    def library_error_on_second_batch(data):
-        calls.append(1)
-        if len(calls) == 2:
-            try:
-                os.kill(os.getpid(), signal.SIGTERM)
-                time.sleep(5)  # the handler raises Terminated here
-            except KeyboardInterrupt:
-                raise RuntimeError("a library's own error while the interrupt unwound") from None
-        return real_update(data)
-
-    monkeypatch.setattr(trainer, "_update", library_error_on_second_batch)
-    with pytest.raises(Terminated):
-        trainer.train()
-    assert "terminated by SIGTERM at 128 frames; saved" in caplog.text
-    resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
-    assert resumed.frames == 128 and resumed.resumed_from is not None
-    resumed.life.lock.release()
+def _library_turns_it_into_its_own_error() -> None:
+    raise RuntimeError("a library's own error while the interrupt unwound") from None
 
 
-def test_a_sigterm_that_a_library_swallows_still_stops_the_run_at_the_batch_end(tmp_path, monkeypatch, caplog):
+def _library_swallows_it() -> None:
     # seen in a suite worker: a library caught the first Terminated whole, the run trained on, and every later
     # SIGTERM was ignored as "already stopping"; now the loop stops at the batch end and checkpoints there
+    pass
+
+
+@pytest.mark.parametrize(
+    "library, saved_at, warning",
+    [
+        (_library_turns_it_into_its_own_error, 128, None),
+        (_library_swallows_it, 256, "caught inside a library and did not stop the run"),
+    ],
+)
+def test_a_sigterm_inside_a_library_still_checkpoints_and_stops(
+    tmp_path, monkeypatch, caplog, library, saved_at, warning
+):
     run = tmp_path / "run"
     trainer = Trainer(tiny_cfg("run.total_frames=384", "logging.checkpoint_every_frames=100000"), run)
     real_update, calls = trainer._update, []
 
-    def swallowed_on_second_batch(data):
+    def sigterm_inside_a_library_on_second_batch(data):
         calls.append(1)
         if len(calls) == 2:
             try:
                 os.kill(os.getpid(), signal.SIGTERM)
                 time.sleep(5)  # the handler raises Terminated here
-            except BaseException:  # noqa: BLE001 -- the library that swallows everything
-                pass
+            except BaseException:  # noqa: BLE001 -- what the library does with it
+                library()
         return real_update(data)
 
-    monkeypatch.setattr(trainer, "_update", swallowed_on_second_batch)
+    monkeypatch.setattr(trainer, "_update", sigterm_inside_a_library_on_second_batch)
     with pytest.raises(Terminated):
         trainer.train()
-    assert len(calls) == 2, "stopped at the end of the batch that swallowed the SIGTERM"
-    assert "caught inside a library and did not stop the run" in caplog.text
-    assert "terminated by SIGTERM at 256 frames; saved" in caplog.text
+    assert len(calls) == 2, "stopped within the batch or at its end"
+    assert f"terminated by SIGTERM at {saved_at} frames; saved" in caplog.text
+    assert warning is None or warning in caplog.text
     resumed = Trainer(tiny_cfg("run.total_frames=384"), run)
-    assert resumed.frames == 256 and resumed.resumed_from is not None
+    assert resumed.frames == saved_at and resumed.resumed_from is not None
     resumed.life.lock.release()
 
 
