@@ -235,6 +235,40 @@ def test_chain_run_report_counts_to_95_across_the_stages(tmp_path):
     assert row["trainable_params"] == 1234 and row["privileged"] == "x"  # the model's size; any stage's privilege
 
 
+def test_the_chain_stage_table_says_where_each_arm_stalled(tmp_path):
+    def stage(run_dir: Path, name: str, frames: int, success: float) -> None:
+        (run_dir / name).mkdir(parents=True)
+        (run_dir / name / "summary.json").write_text(json.dumps({"frames": frames, "final_success_rate": success}))
+        (run_dir / name / "progress.csv").write_text(f"frames,episodes,success_rate\n{frames},10,{success}\n")
+
+    records = []
+    plan = {  # seed: stages finished (frames, success); the learner passes both, the staller sticks at stage b
+        ("learner", 0): [("a", 100, 0.9), ("b", 300, 0.99)],
+        ("learner", 1): [("a", 200, 0.92), ("b", 300, 0.97)],
+        ("staller", 0): [("a", 150, 0.91), ("b", 300, 0.0)],
+        ("staller", 1): [("a", 250, 0.93)],  # still training stage b: partial
+    }
+    for (label, seed), stages in plan.items():
+        run_dir = tmp_path / "runs" / label / "e" / f"seed{seed}"
+        for name, frames, success in stages:
+            stage(run_dir, name, frames, success)
+        if len(stages) == 2:
+            (run_dir / "done.json").write_text(json.dumps({"total_frames": None, "frames": 400}))
+        records.append(
+            RunRecord(
+                label=label, env="e", env_dir="e", seed=seed, run_dir=run_dir, target_frames=None, stages=["a", "b"]
+            )
+        )
+    write_report(tmp_path, "demo", records)
+    table = (tmp_path / "summary.md").read_text().split("## Chain stages")[1]
+    assert "| arm | a | b |" in table
+    assert (
+        "| learner | 2/2: 150 (100–200) frames, success 0.91 (0.90–0.92) | 2/2: 300 frames, success 0.98 (0.97–0.99) |"
+        in table
+    )
+    assert "| staller | 2/2: 200 (150–250) frames, success 0.92 (0.91–0.93) | 1/2: 300 frames, success 0.00 |" in table
+
+
 def test_an_entry_with_its_own_seeds(tmp_path):
     # more seeds for the arm a comparison turns on: the entry's seeds replace the suite's for that entry alone, and
     # the report counts each arm over its own seeds

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from freamer_rl.experiments.chain_report import chain_stage_markdown
 from freamer_rl.experiments.health_table import (
     HEALTH_METRICS,
     HEALTH_REFERENCES,
@@ -300,6 +301,7 @@ def read_run(rec: RunRecord) -> dict[str, Any]:
     out["encoder"] = summary.get("encoder")  # health runs: the encoder kind and the held-out subjects (LOSO rows)
     out["eval_subjects"] = " ".join(str(s) for s in summary.get("eval_subjects") or [])
     out.update(error=error, run_dir=str(rec.run_dir), env_dir=rec.env_dir, chain=rec.stages is not None, rows=rows)
+    out["stages"] = rec.stages  # a chain run's stage folders (the per-stage table), not a runs.csv column
     return out
 
 
@@ -485,6 +487,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
             "(chain): a curriculum chain; its frames, episodes and to-95% values are counted across all its stages, "
             "its final values are its last stage's (the env shown).",
         ]
+        lines += chain_stage_markdown(results)
     privileged = [r for r in rows if r.get("privileged")]
     if privileged:
         lines += [
