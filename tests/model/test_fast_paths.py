@@ -19,6 +19,7 @@ from freamer_rl.layers.encoders import RewardEncoder
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser, StateFNOEncoder
 from freamer_rl.layers.tdmodule import KeyedModule
+from freamer_rl.run.rundir import Terminated
 
 
 @pytest.fixture
@@ -209,6 +210,25 @@ def test_compile_or_eager_keeps_bad_input_errors(monkeypatch):
     assert f.fallbacks == 0  # the input's error, not the compiler's
     assert torch.equal(f(torch.ones(3)), torch.ones(3))
     assert len(compiled_calls) == 2  # the next call still ran the compiled function: compiling stays on
+
+
+def test_compile_or_eager_raises_an_interrupt_the_compiler_wrapped_instead_of_falling_back(monkeypatch):
+    # a Ctrl-C / SIGTERM during compilation that the compiler turns into its own error must stop the run: taken for
+    # a failed compilation, it would be swallowed and the run would go on eagerly
+    def interrupted_compile(fn, **kwargs):
+        def run(*a, **k):
+            try:
+                raise Terminated("SIGTERM")
+            except KeyboardInterrupt as err:
+                raise RuntimeError("backend compiler failed") from err
+
+        return run
+
+    monkeypatch.setattr(torch, "compile", interrupted_compile)
+    f = CompileOrEager(lambda x: x * 2, "doubler")
+    with pytest.raises(Terminated):
+        f(torch.ones(2))
+    assert f.fallbacks == 0 and not f._failed
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -4,7 +4,8 @@ Compilation can fail for reasons outside the model (no C++ compiler for the CPU 
 platform, a torch bug). :class:`CompileOrEager` then logs one warning naming the function and the error, counts
 the fallback in :attr:`CompileOrEager.fallbacks`, and runs the eager function from then on. An error that the
 eager function raises as well (bad input) is the eager function's own: it propagates unchanged and compiling stays
-on.
+on. An error caused by a Ctrl-C / SIGTERM during compilation is raised as that interrupt, never taken for a failed
+compilation (the run must stop, not go on eagerly).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from collections.abc import Callable
 from typing import Any
 
 import torch
+
+from freamer_rl.errors import interrupt_in_chain
 
 logger = logging.getLogger(__name__)
 
@@ -43,6 +46,9 @@ class CompileOrEager:
         try:
             return self._compiled(*args, **kwargs)
         except Exception as err:  # noqa: BLE001 -- decided below: the compiler's failure or the input's
+            interrupt = interrupt_in_chain(err)
+            if interrupt is not None:  # Ctrl-C / SIGTERM while compiling, wrapped by the compiler: not a failure
+                raise interrupt from err
             compile_error = err
         result = self.fn(*args, **kwargs)  # raises the input's own error (compiling stays on) if eager fails too
         self._failed = True

@@ -32,7 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from freamer_rl.config.checks import run_name_problem
-from freamer_rl.errors import FreamerError
+from freamer_rl.errors import FreamerError, interrupt_in_chain
 from freamer_rl.run.checkpoint import atomic_write_text
 
 try:
@@ -204,20 +204,6 @@ def catch_sigterm() -> SigtermToken | None:
 
     token.previous = signal.signal(signal.SIGTERM, handler)
     return token
-
-
-def interrupt_in_chain(err: BaseException) -> KeyboardInterrupt | None:
-    """The Ctrl-C / SIGTERM (:class:`KeyboardInterrupt`) behind ``err``: ``err`` itself or one of its causes /
-    contexts (a library that catches every exception inside its own ``try`` turns an interrupt raised there into
-    its own error, e.g. a RuntimeError whose ``__context__`` is :class:`Terminated`); None if there is none."""
-    seen: set[int] = set()
-    e: BaseException | None = err
-    while e is not None and id(e) not in seen:
-        if isinstance(e, KeyboardInterrupt):
-            return e
-        seen.add(id(e))
-        e = e.__cause__ or e.__context__
-    return None
 
 
 @contextlib.contextmanager
