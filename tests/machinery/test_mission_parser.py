@@ -325,6 +325,17 @@ def test_llm_generation_error_falls_back(model_dirs, monkeypatch):
     assert parser.parse("open the red door") == RegexMissionParser(VOCAB).parse("open the red door")
     assert parser.fallback_reasons["generation_error"] == 1 and parser.fallbacks == 1
 
+    def interrupted(*args, **kwargs):  # Ctrl-C inside generate(), turned into a library's own error: not a fallback
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as err:
+            raise RuntimeError("generation aborted") from err
+
+    monkeypatch.setattr(parser.model, "generate", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        parser.parse("open the blue door")
+    assert parser.fallbacks == 1
+
 
 def _assert_weights_line(err: FreamerError, directory: str) -> None:
     text = str(err)

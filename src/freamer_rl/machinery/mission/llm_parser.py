@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from freamer_rl.errors import FreamerError
+from freamer_rl.errors import FreamerError, interrupt_in_chain
 from freamer_rl.machinery.mission.regex_parser import RegexMissionParser
 from freamer_rl.machinery.mission.types import MissionVocabulary, ParsedMission, Target
 from freamer_rl.torchvision_compat import import_torchvision_safely
@@ -316,6 +316,9 @@ class LLMMissionParser:
         try:
             text = self.generate(mission)
         except Exception as exc:  # noqa: BLE001  -- any generation failure is answered by the fallback (Eq. A9)
+            interrupt = interrupt_in_chain(exc)
+            if interrupt is not None:  # Ctrl-C / SIGTERM inside generate(), wrapped by a library: stop, not fall back
+                raise interrupt from exc
             return self._fall_back("generation_error", mission, f"{type(exc).__name__}: {exc}")
         try:
             return parse_llm_json(text, self.vocab)
