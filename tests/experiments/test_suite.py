@@ -147,6 +147,14 @@ def test_plan_folders_and_overrides(tmp_path, monkeypatch):
             "name: demo\nevaluate: {conditions: [{label: clean}]}\nentries: [{label: c, recipe: c.chain.yaml}]\n",
             r"entries\[0\].recipe: .* cannot evaluate",
         ),
+        (
+            "name: demo\ncompare: [[a, b]]\nentries: [{label: a, recipe: tiny.yaml}]\n",
+            r"compare\[0\]: 'b' is not an entry",
+        ),
+        (
+            "name: demo\ncompare: [[a, a]]\nentries: [{label: a, recipe: tiny.yaml}]\n",
+            r"compare\[0\]: expected two different",
+        ),
     ],
 )
 def test_suite_validation_names_the_field(tmp_path, text, field):
@@ -235,23 +243,17 @@ def test_chain_run_report_counts_to_95_across_the_stages(tmp_path):
     assert row["trainable_params"] == 1234 and row["privileged"] == "x"  # the model's size; any stage's privilege
 
 
-def test_the_chain_stage_table_says_where_each_arm_stalled(tmp_path):
-    def stage(run_dir: Path, name: str, frames: int, success: float) -> None:
-        (run_dir / name).mkdir(parents=True)
-        (run_dir / name / "summary.json").write_text(json.dumps({"frames": frames, "final_success_rate": success}))
-        (run_dir / name / "progress.csv").write_text(f"frames,episodes,success_rate\n{frames},10,{success}\n")
-
+def _chain_records(root: Path, plan: dict) -> list[RunRecord]:
+    """Chain runs of stages "a" and "b" from ``plan``: {(label, seed): [(stage, frames, success, frames to 95%)]};
+    a run with both stages is done."""
     records = []
-    plan = {  # seed: stages finished (frames, success); the learner passes both, the staller sticks at stage b
-        ("learner", 0): [("a", 100, 0.9), ("b", 300, 0.99)],
-        ("learner", 1): [("a", 200, 0.92), ("b", 300, 0.97)],
-        ("staller", 0): [("a", 150, 0.91), ("b", 300, 0.0)],
-        ("staller", 1): [("a", 250, 0.93)],  # still training stage b: partial
-    }
     for (label, seed), stages in plan.items():
-        run_dir = tmp_path / "runs" / label / "e" / f"seed{seed}"
-        for name, frames, success in stages:
-            stage(run_dir, name, frames, success)
+        run_dir = root / "runs" / label / "e" / f"seed{seed}"
+        for name, frames, success, f95 in stages:
+            (run_dir / name).mkdir(parents=True)
+            summary = {"frames": frames, "final_success_rate": success, "frames_to_95": f95, "episodes_to_95": None}
+            (run_dir / name / "summary.json").write_text(json.dumps(summary))
+            (run_dir / name / "progress.csv").write_text(f"frames,episodes,success_rate\n{frames},10,{success}\n")
         if len(stages) == 2:
             (run_dir / "done.json").write_text(json.dumps({"total_frames": None, "frames": 400}))
         records.append(
@@ -259,6 +261,19 @@ def test_the_chain_stage_table_says_where_each_arm_stalled(tmp_path):
                 label=label, env="e", env_dir="e", seed=seed, run_dir=run_dir, target_frames=None, stages=["a", "b"]
             )
         )
+    return records
+
+
+def test_the_chain_stage_table_says_where_each_arm_stalled(tmp_path):
+    records = _chain_records(
+        tmp_path,
+        {  # the learner passes both stages, the staller sticks at stage b; its seed 1 still trains stage b
+            ("learner", 0): [("a", 100, 0.9, None), ("b", 300, 0.99, 50)],
+            ("learner", 1): [("a", 200, 0.92, None), ("b", 300, 0.97, 80)],
+            ("staller", 0): [("a", 150, 0.91, None), ("b", 300, 0.0, None)],
+            ("staller", 1): [("a", 250, 0.93, None)],
+        },
+    )
     write_report(tmp_path, "demo", records)
     table = (tmp_path / "summary.md").read_text().split("## Chain stages")[1]
     assert "| arm | a | b |" in table
@@ -267,6 +282,26 @@ def test_the_chain_stage_table_says_where_each_arm_stalled(tmp_path):
         in table
     )
     assert "| staller | 2/2: 200 (150–250) frames, success 0.92 (0.91–0.93) | 1/2: 300 frames, success 0.00 |" in table
+
+
+def test_compare_pairs_read_a_stalled_arm_as_slower_not_as_missing(tmp_path):
+    # three seeds each: A reaches 95% in every run, B in none (its IQM column stays empty); then B reaches it too,
+    # later than A in two runs of three and sooner in one
+    stalled = {("A", k): [("a", 100, 0.9, None), ("b", 300, 0.99, 50 + k)] for k in range(3)}
+    stalled |= {("B", k): [("a", 100, 0.9, None), ("b", 300, 0.1, None)] for k in range(3)}
+    write_report(tmp_path / "one", "demo", _chain_records(tmp_path / "one", stalled), compare=[["A", "B"]])
+    text = (tmp_path / "one" / "summary.md").read_text().split("## Comparisons")[1]
+    # frames to 95% across the chain: stage a's 100 frames plus the stage's own
+    row = "| A vs B | e | 3 / 3 | 3 / 0 | 1.00 [1.00, 1.00] | A ahead of B | 1.00 [1.00, 1.00] (final success) | A ahead of B |"
+    assert row in text
+    mixed = {("A", k): [("a", 100, 0.9, None), ("b", 300, 0.99, 50 + 10 * k)] for k in range(3)}
+    mixed |= {("B", k): [("a", 100, 0.9, None), ("b", 300, 0.99, [45, 90, 95][k])] for k in range(3)}
+    write_report(tmp_path / "two", "demo", _chain_records(tmp_path / "two", mixed), compare=[["A", "B"]])
+    text = (tmp_path / "two" / "summary.md").read_text().split("## Comparisons")[1]
+    assert "| A vs B | e | 3 / 3 | 3 / 3 | 0.67 [" in text and "no clear difference" in text
+    few = {key: stages for key, stages in stalled.items() if key[1] < 2}
+    write_report(tmp_path / "few", "demo", _chain_records(tmp_path / "few", few), compare=[["A", "B"]])
+    assert "too few seeds (< 3 per arm)" in (tmp_path / "few" / "summary.md").read_text()
 
 
 def test_an_entry_with_its_own_seeds(tmp_path):

@@ -35,6 +35,7 @@ from freamer_rl.experiments.health_table import (
     health_summary,
     loso_markdown,
 )
+from freamer_rl.experiments.learning_compare import learning_compare_markdown
 from freamer_rl.experiments.stats import iqm_ci
 from freamer_rl.experiments.stats import is_missing as _missing
 from freamer_rl.run.checkpoint import atomic_write_text
@@ -432,7 +433,8 @@ def _to95(row: dict, key: str) -> str:
     return f"{head} [{row[f'{key}_per_seed']}]"
 
 
-def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
+def summary_markdown(name: str, rows: list[dict], results: list[dict], compare: list[list[str]] | None = None) -> str:
+    """summary.md: the per-arm table, then the chain stages, the ``compare`` pairs, health tables, failures."""
     has_crafter = any(r["crafter_score_mean"] is not None for r in rows)
     # envs without a notion of success (Crafter, CartPole): no success or to-95% columns
     has_success = any(r["success_rate_mean"] is not None for r in rows)
@@ -495,6 +497,7 @@ def summary_markdown(name: str, rows: list[dict], results: list[dict]) -> str:
             "(privileged): the arm reads what the agent cannot observe, so it is not a like-for-like comparison:",
         ]
         lines += [f"- {r['label']}: {r['privileged']}" for r in privileged]
+    lines += learning_compare_markdown(results, compare or [])
     lines += health_markdown(rows)
     lines += loso_markdown(results)
     failed = [r for r in results if r["status"] == "failed"]
@@ -548,9 +551,11 @@ def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
     return written
 
 
-def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict[str, Any]]:
+def write_report(
+    output: Path, name: str, records: list[RunRecord], compare: list[list[str]] | None = None
+) -> list[dict[str, Any]]:
     """Write runs.csv, summary.csv, summary.md, curves.csv and the curve PNGs into ``output``; returns runs.csv's
-    rows (with each run's ``rows``)."""
+    rows (with each run's ``rows``). ``compare``: pairs of labels for summary.md's "Comparisons" section."""
     output.mkdir(parents=True, exist_ok=True)
     results = [read_run(rec) for rec in records]
     health = [
@@ -562,7 +567,7 @@ def write_report(output: Path, name: str, records: list[RunRecord]) -> list[dict
     write_rows_csv(output / "runs.csv", results, fields=RUN_FIELDS[:-2] + health + RUN_FIELDS[-2:])
     rows = summary_rows(results)
     write_rows_csv(output / "summary.csv", [{k: v for k, v in r.items() if not k.startswith("_")} for r in rows])
-    atomic_write_text(output / "summary.md", summary_markdown(name, rows, results))
+    atomic_write_text(output / "summary.md", summary_markdown(name, rows, results, compare or []))
     curves = _curve_rows(results)
     write_rows_csv(output / "curves.csv", curves, fields=list(curves[0]) if curves else None)
     plots = _plots(output, results, list(dict.fromkeys(rec.label for rec in records)))

@@ -42,7 +42,13 @@ from freamer_rl.config.checks import run_name_problem
 from freamer_rl.config.sections import CorruptionConfig, check_corruption_entry
 from freamer_rl.errors import ConfigError, FreamerError
 from freamer_rl.experiments.report import read_json
-from freamer_rl.experiments.robustness_compare import COMPARE_ON, by_env, compare_markdown, compare_table
+from freamer_rl.experiments.robustness_compare import (
+    COMPARE_ON,
+    by_env,
+    check_pairs,
+    compare_markdown,
+    compare_table,
+)
 from freamer_rl.experiments.stats import iqm_ci, mean_ratio_ci, stratified_bootstrap_ci
 from freamer_rl.experiments.workers import error_line
 from freamer_rl.run.checkpoint import atomic_write_text, read_checkpoint
@@ -158,12 +164,7 @@ def check_evaluate(cfg: EvaluateConfig, labels: list[str]) -> None:
     for on in cfg.compare_on:
         if on not in COMPARE_ON:
             raise ConfigError(f"evaluate.compare_on: expected entries of {', '.join(COMPARE_ON)}, got {on!r}")
-    for i, pair in enumerate(cfg.compare):
-        if len(pair) != 2 or pair[0] == pair[1]:
-            raise ConfigError(f"evaluate.compare[{i}]: expected two different entry labels [A, B], got {pair}")
-        for arm in pair:
-            if arm not in labels:
-                raise ConfigError(f"evaluate.compare[{i}]: {arm!r} is not an entry label ({', '.join(labels)})")
+    check_pairs(cfg.compare, labels, "evaluate.compare")
 
 
 # -- evaluation jobs -----------------------------------------------------------------------------------------------

@@ -14,9 +14,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
+from freamer_rl.errors import ConfigError
 from freamer_rl.experiments.stats import probability_of_improvement
 
-__all__ = ["COMPARE_ON", "VERDICT_SEEDS", "by_env", "compare_markdown", "compare_table", "verdict"]
+__all__ = ["COMPARE_ON", "VERDICT_SEEDS", "by_env", "check_pairs", "compare_markdown", "compare_table", "verdict"]
 
 #: ``evaluate.compare_on`` choices
 COMPARE_ON = ("R", "score")
@@ -32,6 +33,16 @@ def by_env(rows: list[dict], key: str) -> dict[str, list[float]]:
         if math.isfinite(r[key]):
             out.setdefault(r["env"], []).append(r[key])
     return out
+
+
+def check_pairs(pairs: list[list[str]], labels: list[str], field: str) -> None:
+    """Each pair names two different entry labels; ConfigError naming ``field[i]`` otherwise."""
+    for i, pair in enumerate(pairs):
+        if len(pair) != 2 or pair[0] == pair[1]:
+            raise ConfigError(f"{field}[{i}]: expected two different entry labels [A, B], got {pair}")
+        for arm in pair:
+            if arm not in labels:
+                raise ConfigError(f"{field}[{i}]: {arm!r} is not an entry label ({', '.join(labels)})")
 
 
 def verdict(a: str, b: str, low: float, high: float) -> str:

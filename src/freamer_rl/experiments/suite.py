@@ -68,6 +68,7 @@ from freamer_rl.experiments.robustness import (
     check_evaluate,
     write_robustness,
 )
+from freamer_rl.experiments.robustness_compare import check_pairs
 from freamer_rl.experiments.suite_evals import EvaluationQueue, describe_evaluations
 from freamer_rl.experiments.workers import collect_jobs, error_line, submit_jobs, worker_pool
 from freamer_rl.run.checkpoint import atomic_write_text
@@ -108,6 +109,9 @@ class SuiteConfig:
     envs: list[str] = field(default_factory=list)
     overrides: list[str] = field(default_factory=list)
     total_frames: int | None = None
+    # pairs of entry labels [A, B]: P(A reaches 95% sooner) and P(A ends higher) in summary.md
+    # (freamer_rl.experiments.learning_compare)
+    compare: list[list[str]] = field(default_factory=list)
     # robustness evaluation (freamer_rl.experiments.robustness); no conditions: none. Not Optional: the loader's
     # union coercion would hide the nested field an error names
     evaluate: EvaluateConfig = field(default_factory=EvaluateConfig)
@@ -156,6 +160,7 @@ def _validate_suite(cfg: SuiteConfig) -> None:
             if not entry.envs:
                 raise ConfigError(f"entries[{i}].envs: an empty list (leave it out to use the suite's envs)")
             _check_envs(entry.envs, f"entries[{i}].envs")
+    check_pairs(cfg.compare, [e.label for e in cfg.entries], "compare")
     if cfg.evaluate != EvaluateConfig():
         check_evaluate(cfg.evaluate, [e.label for e in cfg.entries])
 
@@ -531,7 +536,7 @@ def run_suite(
                             evaluated += more
                         if lost:
                             logger.warning("suite %s: evaluations lost again (a worker died); rerun", suite.name)
-        results = write_report(root, suite.name, list(runs))
+        results = write_report(root, suite.name, list(runs), compare=suite.compare)
         if suite.evaluate.conditions:
             write_robustness(root, suite.name, results, suite.evaluate)
     rows = [{k: v for k, v in r.items() if k != "rows"} for r in results]
