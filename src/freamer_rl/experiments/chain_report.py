@@ -56,8 +56,8 @@ def chain_stage_markdown(results: list[dict[str, Any]]) -> list[str]:
         "## Chain stages",
         "",
         "Per arm and stage: seeds that finished the stage / seeds started, the frames they trained in it, mean "
-        "(min–max), and their success over its last 100 episodes. A stage ends at its move-on success rate or its "
-        "frame cap; the last stage trains to its cap.",
+        "(min–max), and their success over its last 100 episodes. A stage ends at its move-on success rate "
+        "(`run.stop_at_success`) or at its frame cap.",
         "",
         "| arm | " + " | ".join(stages) + " |",
         "|---|" + "---:|" * len(stages),
