@@ -304,6 +304,19 @@ def test_compare_pairs_read_a_stalled_arm_as_slower_not_as_missing(tmp_path):
     assert "too few seeds (< 3 per arm)" in (tmp_path / "few" / "summary.md").read_text()
 
 
+def test_compare_pairs_on_a_task_without_success_read_the_final_return():
+    from freamer_rl.experiments.learning_compare import learning_compare_markdown
+
+    def run(label: str, seed: int, ret: float) -> dict:
+        return {"label": label, "env": "CartPole-v1", "seed": seed, "status": "done", "success_rate": None,
+                "return_mean": ret, "frames_to_95": None, "levels_unknown": []}  # fmt: skip
+
+    results = [run("A", k, 500.0) for k in range(3)] + [run("B", k, 400.0 + k) for k in range(3)]
+    (row,) = [line for line in learning_compare_markdown(results, [["A", "B"]]) if line.startswith("| A vs B")]
+    assert "| n/a | n/a | n/a (no success rate" in row  # no "sooner to 95%" without a success rate
+    assert "1.00 [1.00, 1.00] (final return) | A ahead of B |" in row
+
+
 def test_an_entry_with_its_own_seeds(tmp_path):
     # more seeds for the arm a comparison turns on: the entry's seeds replace the suite's for that entry alone, and
     # the report counts each arm over its own seeds

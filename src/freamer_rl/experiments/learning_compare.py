@@ -31,8 +31,9 @@ def _p_cell(a_vals: list[float], b_vals: list[float], a: str, b: str, env: str) 
 
 
 def _sooner(runs: list[dict]) -> list[float] | None:
-    """Negated frames to 95% (higher is sooner; never reached: -NOT_REACHED); None when a run does not record it."""
-    if any("frames_to_95" in r.get("levels_unknown", ()) for r in runs):
+    """Negated frames to 95% (higher is sooner; never reached: -NOT_REACHED); None when a run does not record it or
+    the task has no success rate (CartPole, Crafter)."""
+    if any("frames_to_95" in r.get("levels_unknown", ()) or is_missing(r.get("success_rate")) for r in runs):
         return None
     return [-(NOT_REACHED if r.get("frames_to_95") is None else float(r["frames_to_95"])) for r in runs]
 
@@ -51,7 +52,7 @@ def _pair_cells(a: str, b: str, env: str, ra: list[dict], rb: list[dict]) -> lis
     cells = [f"{a} vs {b}", env, f"{len(ra)} / {len(rb)}"]
     sa, sb = _sooner(ra), _sooner(rb)
     if sa is None or sb is None:
-        cells += ["n/a", "n/a", "n/a (a run predates the record)"]
+        cells += ["n/a", "n/a", "n/a (no success rate, or a run predates the record)"]
     else:
         cells += [f"{reached[0]} / {reached[1]}", *_p_cell(sa, sb, a, b, env)]
     fa, fb = _final(ra), _final(rb)
