@@ -308,8 +308,15 @@ def test_reward_mixer_adaptive_and_time_penalty():
     assert td["next", "shaped_reward"].reshape(-1).tolist() == pytest.approx(want)
     assert td["next", "reward"].reshape(-1).tolist() == pytest.approx([0.0, 0.0, 0.9])  # env reward untouched
     diag = mixer.diagnostics()
+    # one episode ended in the batch: it collected decay * (0.4 * 0.7 + 0.1 * 3.0) of bonus
     assert diag == pytest.approx(
-        {"bonus_novelty": 0.7 / 3, "bonus_curiosity": 1.0, "shaping_decay": 0.5, "time_penalty": 0.07}
+        {
+            "bonus_novelty": 0.7 / 3,
+            "bonus_curiosity": 1.0,
+            "shaping_decay": 0.5,
+            "time_penalty": 0.07,
+            "bonus_per_episode": 0.5 * (0.28 + 0.3),
+        }
     )
     mixer(td, success_rate=0.9)  # decay floors at 0; penalty 0.05 * 1.9
     assert td["next", "shaped_reward"].reshape(-1).tolist() == pytest.approx([-0.095, -0.095, 0.9 - 0.095])
@@ -334,6 +341,22 @@ def test_reward_mixer_non_adaptive_keys_and_errors():
         missing(td, 0.0)
     with pytest.raises(KeyError, match="NoveltyBonus"):
         missing(td.exclude(("next", "novelty_bonus")).update({"next": {"vl_reward": torch.zeros(1, 3, 1)}}), 0.0)
+
+
+def test_bonus_per_episode_divides_the_batch_bonus_by_the_episodes_that_ended():
+    td = _mix_batch().expand(2, 3).clone()  # two rows, each ending one episode at its last step
+    mixer = RewardMixer({"novelty": (("next", "novelty_bonus"), 2.0)}, adaptive=False)
+    mixer(td, 0.0)
+    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(2.0 * 0.7)  # each episode: 2 * (0.5 + 0.2)
+    td["next", "done"][0, -1] = False  # one episode ended, the whole batch's bonus over it
+    mixer(td, 0.0)
+    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(2.0 * 1.4)
+    td["next", "done"].zero_()  # no episode ended: nothing to divide by
+    mixer(td, 0.0)
+    assert math.isnan(mixer.diagnostics()["bonus_per_episode"])
+    no_terms = RewardMixer(time_penalty=0.05)  # no bonus terms: no bonus to report
+    no_terms(td, 0.0)
+    assert "bonus_per_episode" not in no_terms.diagnostics()
 
 
 def test_time_penalty_matches_appendix_a5():

@@ -50,7 +50,8 @@ class RewardMixer(nn.Module):
     Keys (defaults):
         reward: ``("next", "reward")``, the env reward ``[*B, T, 1]`` (read, never written).
         done, terminated: ``("next", "done")``, ``("next", "terminated")``; declared so the mixer's keys can be kept
-            in step with the value estimator's (:attr:`in_keys` lists them) -- the arithmetic does not read them.
+            in step with the value estimator's (:attr:`in_keys` lists them) -- the arithmetic does not read them;
+            ``done`` (when present) counts the episodes for the ``bonus_per_episode`` diagnostic.
         shaped_reward: ``("next", "shaped_reward")``, the output.
 
     Args:
@@ -63,7 +64,12 @@ class RewardMixer(nn.Module):
 
     Forward: ``mixer(td, success_rate)`` writes the output key and returns ``td``. ``success_rate`` is the recent
     success rate ``S`` in ``[0, 1]``; NaN (no episode finished yet) counts as 0. :meth:`diagnostics` returns the
-    last call's ``bonus_<name>`` (each term's raw mean), ``shaping_decay`` and ``time_penalty`` (per step).
+    last call's ``bonus_<name>`` (each term's raw mean), ``shaping_decay``, ``time_penalty`` (per step) and, with
+    terms and a ``done`` entry, ``bonus_per_episode``: the weighted, decayed bonus summed over the batch divided by
+    the episodes that ended in it (NaN when none did), about what one episode collects, in env-reward units (before
+    ``scale``). Read it beside the episode return: a positive per-step bonus that adds up to more than the task's
+    reward pays the agent to keep episodes running rather than to finish them (DoorKey-8x8 with the novelty bonus at
+    weight 0.1: ~55 per episode against a goal reward of at most 1).
 
     Raises:
         KeyError: a term's key (or the reward) is missing, naming the key and what writes it.
@@ -176,6 +182,11 @@ class RewardMixer(nn.Module):
             bonus = bonus + weight * term
             diag[f"bonus_{name}"] = term.detach().mean()
         td.set(keys.shaped_reward, self.scale * (reward + decay * bonus - penalty))
+        done = td.get(keys.done, None)
+        if self.terms and done is not None:
+            ends = done.sum()  # stays a tensor: no host sync in forward
+            per_episode = decay * bonus.detach().sum() / ends.clamp_min(1)
+            diag["bonus_per_episode"] = torch.where(ends > 0, per_episode, torch.full_like(per_episode, math.nan))
         diag["shaping_decay"] = torch.tensor(decay)
         diag["time_penalty"] = torch.tensor(penalty)
         self._diagnostics = diag
