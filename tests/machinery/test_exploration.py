@@ -343,17 +343,23 @@ def test_reward_mixer_non_adaptive_keys_and_errors():
         missing(td.exclude(("next", "novelty_bonus")).update({"next": {"vl_reward": torch.zeros(1, 3, 1)}}), 0.0)
 
 
-def test_bonus_per_episode_divides_the_batch_bonus_by_the_episodes_that_ended():
-    td = _mix_batch().expand(2, 3).clone()  # two rows, each ending one episode at its last step
+def test_bonus_per_episode_sums_each_episode_across_batches():
     mixer = RewardMixer({"novelty": (("next", "novelty_bonus"), 2.0)}, adaptive=False)
-    mixer(td, 0.0)
-    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(2.0 * 0.7)  # each episode: 2 * (0.5 + 0.2)
-    td["next", "done"][0, -1] = False  # one episode ended, the whole batch's bonus over it
-    mixer(td, 0.0)
-    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(2.0 * 1.4)
-    td["next", "done"].zero_()  # no episode ended: nothing to divide by
+    td = _mix_batch().expand(2, 3).clone()  # two rows; weighted bonus per step 1.0, 0.0, 0.4 (1.4 per batch)
+    td["next", "done"].zero_()  # no episode ends: nothing to report, each row carries 1.4
     mixer(td, 0.0)
     assert math.isnan(mixer.diagnostics()["bonus_per_episode"])
+    td["next", "done"][0, -1] = True  # row 0 ends at its last step: 1.4 carried + 1.4
+    mixer(td, 0.0)
+    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(2.8)
+    td["next", "done"].zero_()
+    td["next", "done"][:, 0] = True  # both end at the first step: row 0 from 0, row 1 from its 2.8 carried
+    mixer(td, 0.0)
+    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(((0 + 1.0) + (2.8 + 1.0)) / 2)
+    td["next", "done"].zero_()
+    td["next", "done"][:, -1] = True  # each row's new episode: 0.4 left over from the last batch + 1.4
+    mixer(td, 0.0)
+    assert mixer.diagnostics()["bonus_per_episode"] == pytest.approx(1.8)
     no_terms = RewardMixer(time_penalty=0.05)  # no bonus terms: no bonus to report
     no_terms(td, 0.0)
     assert "bonus_per_episode" not in no_terms.diagnostics()

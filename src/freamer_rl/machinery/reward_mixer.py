@@ -45,13 +45,14 @@ class RewardMixer(nn.Module):
     """Mixes bonus terms into ``("next", "shaped_reward")`` ``[*B, T, 1]`` (module docstring for the equation).
 
     Follows TorchRL's loss-key pattern: the keys live in :attr:`tensor_keys` (an ``_AcceptedKeys`` dataclass) and
-    :meth:`set_keys` renames them. The mixer has no parameters and holds no tensor state.
+    :meth:`set_keys` renames them. The mixer has no parameters; its one piece of state is each env row's bonus so far
+    in its unfinished episode, for the ``bonus_per_episode`` diagnostic (batches must come in collection order).
 
     Keys (defaults):
         reward: ``("next", "reward")``, the env reward ``[*B, T, 1]`` (read, never written).
         done, terminated: ``("next", "done")``, ``("next", "terminated")``; declared so the mixer's keys can be kept
             in step with the value estimator's (:attr:`in_keys` lists them) -- the arithmetic does not read them;
-            ``done`` (when present) counts the episodes for the ``bonus_per_episode`` diagnostic.
+            ``done`` (when present) ends the episodes of the ``bonus_per_episode`` diagnostic.
         shaped_reward: ``("next", "shaped_reward")``, the output.
 
     Args:
@@ -65,9 +66,9 @@ class RewardMixer(nn.Module):
     Forward: ``mixer(td, success_rate)`` writes the output key and returns ``td``. ``success_rate`` is the recent
     success rate ``S`` in ``[0, 1]``; NaN (no episode finished yet) counts as 0. :meth:`diagnostics` returns the
     last call's ``bonus_<name>`` (each term's raw mean), ``shaping_decay``, ``time_penalty`` (per step) and, with
-    terms and a ``done`` entry, ``bonus_per_episode``: the weighted, decayed bonus summed over the batch divided by
-    the episodes that ended in it (NaN when none did), about what one episode collects, in env-reward units (before
-    ``scale``). Read it beside the episode return: a positive per-step bonus that adds up to more than the task's
+    terms and a ``done`` entry, ``bonus_per_episode``: the weighted, decayed bonus each episode that ended in the
+    batch collected, from its first step (carried over from earlier batches) to its last, averaged over those
+    episodes (NaN when none ended), in env-reward units (before ``scale``). Read it beside the episode return: a positive per-step bonus that adds up to more than the task's
     reward pays the agent to keep episodes running rather than to finish them (DoorKey-8x8 with the novelty bonus at
     weight 0.1: ~55 per episode against a goal reward of at most 1).
 
@@ -112,6 +113,7 @@ class RewardMixer(nn.Module):
         if out_key is not None:
             self.set_keys(shaped_reward=out_key)
         self._diagnostics: dict[str, torch.Tensor] = {}
+        self._carry: torch.Tensor | None = None  # [rows] bonus so far in each row's unfinished episode
 
     def set_keys(self, **kwargs: NestedKey) -> RewardMixer:
         """Rename keys (``reward``, ``done``, ``terminated``, ``shaped_reward``), as TorchRL's losses do."""
@@ -184,13 +186,32 @@ class RewardMixer(nn.Module):
         td.set(keys.shaped_reward, self.scale * (reward + decay * bonus - penalty))
         done = td.get(keys.done, None)
         if self.terms and done is not None:
-            ends = done.sum()  # stays a tensor: no host sync in forward
-            per_episode = decay * bonus.detach().sum() / ends.clamp_min(1)
-            diag["bonus_per_episode"] = torch.where(ends > 0, per_episode, torch.full_like(per_episode, math.nan))
+            diag["bonus_per_episode"] = self._episode_bonus(decay * bonus.detach(), done)
         diag["shaping_decay"] = torch.tensor(decay)
         diag["time_penalty"] = torch.tensor(penalty)
         self._diagnostics = diag
         return td
+
+    def _episode_bonus(self, added: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        """Mean bonus of the episodes that end in this batch (0-dim; NaN when none), each summed from its first step;
+        ``added`` ``[*B, T, 1]`` the weighted bonus per step, ``done`` ``[*B, T, 1]`` or ``[*B, T]``. Vectorised over
+        time (cumulative sums, the last end before each step by ``cummax``): no host sync."""
+        steps = added.shape[-2]
+        a = added.reshape(-1, steps)
+        d = done.reshape(a.shape).bool()
+        if self._carry is None or self._carry.shape != a.shape[:1]:
+            self._carry = torch.zeros(a.shape[0], dtype=a.dtype, device=a.device)
+        total = self._carry[:, None] + a.cumsum(-1)  # bonus since the row's episode start before this batch
+        t = torch.arange(steps, device=a.device).expand_as(d)
+        last_end = torch.where(d, t, torch.full_like(t, -1)).cummax(-1).values  # last end at or before t
+        before = torch.cat([torch.full_like(last_end[:, :1], -1), last_end[:, :-1]], -1)  # last end before t
+        zero = torch.zeros_like(total[:, :1])
+        padded = torch.cat([zero, total], -1)  # padded[:, i + 1] = total at i; padded[:, 0] = 0 (no end yet)
+        per_step = total - padded.gather(-1, before + 1)  # this episode's bonus up to t
+        self._carry = total[:, -1] - padded.gather(-1, last_end[:, -1:] + 1).squeeze(-1)
+        ends = d.sum()
+        mean = (per_step * d).sum() / ends.clamp_min(1)
+        return torch.where(ends > 0, mean, torch.full_like(mean, math.nan))
 
     def diagnostics(self) -> dict[str, float]:
         """The last forward's ``bonus_<name>`` (mean raw term), ``shaping_decay``, ``time_penalty`` as floats
