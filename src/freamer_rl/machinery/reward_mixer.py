@@ -68,9 +68,11 @@ class RewardMixer(nn.Module):
     last call's ``bonus_<name>`` (each term's raw mean), ``shaping_decay``, ``time_penalty`` (per step) and, with
     terms and a ``done`` entry, ``bonus_per_episode``: the weighted, decayed bonus each episode that ended in the
     batch collected, from its first step (carried over from earlier batches) to its last, averaged over those
-    episodes (NaN when none ended), in env-reward units (before ``scale``). Read it beside the episode return: a positive per-step bonus that adds up to more than the task's
-    reward pays the agent to keep episodes running rather than to finish them (DoorKey-8x8 with the novelty bonus at
-    weight 0.1: ~5 per episode against a goal reward of at most 1).
+    episodes (NaN when none ended), in env-reward units (before ``scale``). Read it beside the episode return: a
+    positive per-step bonus that adds up to more than the task's reward pays the agent to keep episodes running
+    rather than to finish them (DoorKey-8x8 with the novelty bonus at weight 0.1: ~5 per episode against a goal
+    reward of at most 1). The carried sums are not checkpointed: after a resume each row's first episode counts from
+    the resume.
 
     Raises:
         KeyError: a term's key (or the reward) is missing, naming the key and what writes it.
