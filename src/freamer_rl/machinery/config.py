@@ -52,6 +52,9 @@ class ShapingConfig:
     # the factor on the reward PPO's GAE reads (not on the logged return): smaller value targets for a critic that
     # shares the policy's trunk (recipes/gym/cartpole.yaml says what it measured)
     reward_scale: float = 1.0
+    # divide that reward by a running std of its discounted return (machinery/return_norm.py): value targets of
+    # about unit size whatever the task's reward size; reward_scale still applies first
+    return_norm: bool = False
 
 
 @dataclass

@@ -23,6 +23,7 @@ import torch
 from tensordict import TensorDictBase
 
 from freamer_rl.machinery.exploration import CuriosityModel, NoveltyBonus, vision_language_similarity
+from freamer_rl.machinery.return_norm import ReturnNormalizer
 from freamer_rl.machinery.reward_mixer import RewardMixer
 from freamer_rl.run.optim import StepStats, optimizer_step
 
@@ -54,9 +55,18 @@ def potential_difference(phi: torch.Tensor, done: torch.Tensor, gamma: float) ->
 class RewardShaper:
     """Computes the trainer-side terms of a collected batch ``[*B, T]`` and mixes everything into
     ``("next", "shaped_reward")``. ``active`` is False when the recipe turns nothing on (PPO then reads the env
-    reward directly)."""
+    reward directly). ``gamma``: the trainer's discount, which ``shaping.return_norm`` needs."""
 
-    def __init__(self, cfg, modalities: list[str], embed_dim: int, n_actions: int, device: torch.device) -> None:
+    def __init__(
+        self,
+        cfg,
+        modalities: list[str],
+        embed_dim: int,
+        n_actions: int,
+        device: torch.device,
+        *,
+        gamma: float | None = None,
+    ) -> None:
         s = cfg.shaping
         terms: dict[str, tuple] = {}
         if s.language.weight:
@@ -79,7 +89,12 @@ class RewardShaper:
             self.max_grad_norm = CURIOSITY_GRAD_CLIP
             self.step_stats = StepStats("curiosity")
             terms["curiosity"] = (("next", "curiosity_reward"), s.curiosity)
-        self.active = bool(terms) or s.time_penalty > 0 or s.reward_scale != 1.0
+        self.return_norm: ReturnNormalizer | None = None
+        if s.return_norm:
+            if gamma is None:
+                raise ValueError("shaping.return_norm: this trainer gives the reward shaper no discount (gamma)")
+            self.return_norm = ReturnNormalizer(gamma)
+        self.active = bool(terms) or s.time_penalty > 0 or s.reward_scale != 1.0 or s.return_norm
         self.mixer = RewardMixer(
             terms,
             adaptive=s.adaptive,
@@ -100,6 +115,10 @@ class RewardShaper:
             logs["loss_curiosity"] = self._curiosity_terms(data)
         self.mixer(data, success_rate)
         logs.update(self.mixer.diagnostics())
+        if self.return_norm is not None:
+            key = ("next", SHAPED_REWARD)
+            data.set(key, self.return_norm(data[key], done))
+            logs.update({k: float(v) for k, v in self.return_norm.diagnostics().items()})
         return logs
 
     def _curiosity_terms(self, data: TensorDictBase) -> float:
@@ -118,11 +137,16 @@ class RewardShaper:
         return float(loss.detach())
 
     def state_dict(self) -> dict:
-        if self.curiosity is None:
-            return {}
-        return {"curiosity": self.curiosity.state_dict(), "curiosity_opt": self.curiosity_opt.state_dict()}
+        state = {}
+        if self.curiosity is not None:
+            state.update(curiosity=self.curiosity.state_dict(), curiosity_opt=self.curiosity_opt.state_dict())
+        if self.return_norm is not None:
+            state["return_norm"] = self.return_norm.state()
+        return state
 
     def load_state_dict(self, state: dict) -> None:
         if self.curiosity is not None and state.get("curiosity") is not None:
             self.curiosity.load_state_dict(state["curiosity"])
             self.curiosity_opt.load_state_dict(state["curiosity_opt"])
+        if self.return_norm is not None and state.get("return_norm") is not None:
+            self.return_norm.load_state(state["return_norm"])

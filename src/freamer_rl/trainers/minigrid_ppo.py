@@ -200,7 +200,12 @@ class Trainer(RunLoop):
         self.gae = GAE(gamma=p.gamma, lmbda=p.gae_lambda, value_network=None, average_gae=False)
         # reward shaping (App. G.1-G.2, A.5): PPO trains on ("next", "shaped_reward"); success uses the env reward
         self.shaper = RewardShaper(
-            cfg, self.modules.modalities, cfg.model.embed_dim, _action_count(self.modules.actor), self.device
+            cfg,
+            self.modules.modalities,
+            cfg.model.embed_dim,
+            _action_count(self.modules.actor),
+            self.device,
+            gamma=p.gamma,
         )
         if self.shaper.active:
             self.gae.set_keys(reward=SHAPED_REWARD)

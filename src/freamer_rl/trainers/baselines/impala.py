@@ -98,7 +98,7 @@ class ImpalaTrainer(ActorCriticRunLoop):
         self.stamp = TensorDictModule(PolicyVersion(event_dims), in_keys=["action"], out_keys=[VERSION_KEY])
         self.acting_policy = TensorDictSequential(self.net.get_policy_operator(), self.stamp)
         # the PPO baseline's shaping: V-trace then reads ("next", "shaped_reward"), success stays the env reward's
-        self.shaper = RewardShaper(cfg, [], 0, 0, self.device)
+        self.shaper = RewardShaper(cfg, [], 0, 0, self.device, gamma=cfg.impala.gamma)
         self.reward_key = ("next", SHAPED_REWARD if self.shaper.active else "reward")
         self._start(resume)
 

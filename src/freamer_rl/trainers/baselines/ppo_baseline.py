@@ -102,7 +102,7 @@ class PPOBaselineTrainer(ActorCriticRunLoop):
         )
         # the shaping FreamerV1 gets (language reward, novelty, time penalty, adaptive decay): GAE then reads
         # ("next", "shaped_reward"); the env reward, and success judged on it, stay as they are
-        self.shaper = RewardShaper(cfg, [], 0, 0, self.device)
+        self.shaper = RewardShaper(cfg, [], 0, 0, self.device, gamma=p.gamma)
         if self.shaper.active:
             self.gae.set_keys(reward=SHAPED_REWARD)
         # App. G.3, as FreamerV1's (None when off); it replays the reward GAE reads, shaped or not

@@ -1,0 +1,118 @@
+"""Return-based reward normalisation: the reward PPO trains on, divided by a running std of its discounted return.
+
+A critic that shares the policy's trunk regresses on returns whose size is the task's: ~100 on CartPole (the value
+loss's gradient crowds the policy's out after clipping), ~0.05-0.3 on DoorKey-8x8 with a small novelty bonus (its
+gradient is too small to shape the trunk's features). ``shaping.return_norm`` sets the scale from the data, as SB3's
+``VecNormalize(norm_reward=True)`` and openai/baselines do (our own code)::
+
+    G_t     = gamma * G_{t-1} * (1 - done_{t-1}) + r_t       per env row, carried from batch to batch
+    sigma^2 = running variance of G over every step seen     (moments merged per batch: Chan et al. 1979)
+    r'_t    = clamp(r_t / max(sigma, STD_FLOOR), -CLIP, CLIP)
+
+The mean of ``G`` is not subtracted (shifting the reward would change which episodes pay). Rewards are divided by the
+statistics that include the current batch. ``CLIP`` bounds the first rewards of a sparse task, seen while ``sigma``
+is still near 0; every clipped step is counted (``return_norm_clipped``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+__all__ = ["ReturnNormalizer"]
+
+#: smallest std divided by (a task whose returns are still all 0 would otherwise divide by 0)
+STD_FLOOR = 1e-4
+#: bound on a normalised reward (SB3's default ``clip_reward``)
+CLIP = 10.0
+
+
+class ReturnNormalizer(nn.Module):
+    """Divides rewards ``[*B, T, 1]`` (time on dim -2, batches in collection order) by a running std of their
+    discounted return. State (:meth:`state` / :meth:`load_state`, so a resumed run keeps its scale): ``count``,
+    ``mean``, ``var`` of the returns seen, and ``carry`` ``[rows]``, each env row's return so far in its unfinished
+    episode.
+
+    Args:
+        gamma: the discount of the returns whose spread is measured (PPO's ``gamma``), in ``(0, 1]``.
+
+    Raises:
+        ValueError: ``gamma`` outside ``(0, 1]``; ``reward`` and ``done`` of different sizes.
+    """
+
+    def __init__(self, gamma: float) -> None:
+        super().__init__()
+        if not (math.isfinite(gamma) and 0.0 < gamma <= 1.0):
+            raise ValueError(f"ReturnNormalizer: gamma must be in (0, 1], got {gamma!r}")
+        self.gamma = float(gamma)
+        self.count = torch.zeros((), dtype=torch.float64)
+        self.mean = torch.zeros((), dtype=torch.float64)
+        self.var = torch.zeros((), dtype=torch.float64)
+        self.carry = torch.zeros(0, dtype=torch.float64)
+        self.last_scale = torch.ones(())  # 1 / max(sigma, STD_FLOOR) of the last call (diagnostic)
+        self.last_clipped = torch.zeros(())  # steps clipped in the last call
+
+    def returns(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        """Discounted returns ``[rows, T]`` (float64) from the carried ones; updates ``carry``. ``done`` ends an
+        episode after its step: the next step starts from 0."""
+        steps = reward.shape[-2]
+        r = reward.reshape(-1, steps).double()
+        d = done.reshape(r.shape).double()
+        if self.carry.shape != r.shape[:1]:  # first batch (or another number of env rows): no episode carried
+            self.carry = torch.zeros(r.shape[0], dtype=torch.float64, device=r.device)
+        out = torch.empty_like(r)
+        g = self.carry
+        for t in range(steps):  # T small ops on [rows]: a sequential scan, no host sync
+            g = self.gamma * g + r[:, t]
+            out[:, t] = g
+            g = g * (1.0 - d[:, t])
+        self.carry = g
+        return out
+
+    def _merge(self, g: torch.Tensor) -> None:
+        """Chan et al.'s parallel update of (count, mean, var) with the batch's returns."""
+        n = torch.tensor(float(g.numel()), dtype=torch.float64, device=g.device)
+        b_mean, b_var = g.mean(), g.var(unbiased=False)
+        total = self.count + n
+        delta = b_mean - self.mean
+        m2 = self.var * self.count + b_var * n + delta.square() * self.count * n / total
+        self.mean = self.mean + delta * n / total
+        self.var = m2 / total
+        self.count = total
+
+    def forward(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
+        """The normalised reward, same shape and dtype as ``reward [*B, T, 1]``; ``done`` ``[*B, T, 1]`` or
+        ``[*B, T]``."""
+        if done.numel() != reward.numel():
+            raise ValueError(
+                f"ReturnNormalizer: reward {tuple(reward.shape)} and done {tuple(done.shape)} must have the same size"
+            )
+        with torch.no_grad():
+            self._merge(self.returns(reward, done))
+            scale = self.var.sqrt().clamp_min(STD_FLOOR).reciprocal().to(reward.dtype)
+            scaled = reward * scale
+            out = scaled.clamp(-CLIP, CLIP)
+            self.last_scale = scale
+            self.last_clipped = (scaled.abs() > CLIP).sum()
+        return out
+
+    def state(self) -> dict[str, torch.Tensor]:
+        """The running statistics and the carried returns (tensors: a ``weights_only`` checkpoint holds them)."""
+        return {"count": self.count, "mean": self.mean, "var": self.var, "carry": self.carry}
+
+    def load_state(self, state: dict[str, torch.Tensor]) -> None:
+        """Restore :meth:`state`'s output; a missing or malformed entry is an error naming it."""
+        for name in ("count", "mean", "var", "carry"):
+            value = state.get(name)
+            if not isinstance(value, torch.Tensor) or (name != "carry" and value.ndim != 0):
+                raise ValueError(f"ReturnNormalizer.load_state: {name!r} missing or not a tensor of the right shape")
+            setattr(self, name, value.to(torch.float64))
+
+    def diagnostics(self) -> dict[str, torch.Tensor]:
+        """``return_scale`` (the factor of the last call) and ``return_norm_clipped`` (its clipped steps)."""
+        return {"return_scale": self.last_scale, "return_norm_clipped": self.last_clipped}
+
+    def extra_repr(self) -> str:
+        return f"gamma={self.gamma}"
