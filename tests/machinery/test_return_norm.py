@@ -86,6 +86,27 @@ def test_a_first_sparse_reward_is_clipped_and_counted():
     assert out.abs().sum() == CLIP  # every other step stays 0
 
 
+def test_the_floor_caps_the_factor_so_goal_rewards_keep_their_size():
+    """A sparse goal reward: with the default floor the factor is ~1e4 and the goal is clipped to CLIP; with floor 0.1
+    (shaping.return_norm_floor) the factor is at most 10 and the goal keeps its size, x 10."""
+    reward = torch.zeros(4, 8, 1)
+    reward[2, 7] = 0.7
+    done = torch.zeros(4, 8, 1, dtype=torch.bool)
+    small, capped = ReturnNormalizer(GAMMA), ReturnNormalizer(GAMMA, floor=0.1)
+    for norm in (small, capped):
+        norm(torch.zeros(4, 8, 1), done)
+        norm.count = torch.tensor(1e6, dtype=torch.float64)
+    assert float(small(reward, done)[2, 7]) == CLIP and int(small.diagnostics()["return_norm_clipped"]) == 1
+    assert (
+        float(capped(reward, done)[2, 7]) == pytest.approx(7.0)
+        and int(capped.diagnostics()["return_norm_clipped"]) == 0
+    )
+    assert float(capped.diagnostics()["return_scale"]) == pytest.approx(10.0)
+    for bad in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="floor must be a finite number > 0"):
+            ReturnNormalizer(GAMMA, floor=bad)
+
+
 def test_state_round_trip_resumes_the_same_scale():
     reward, done = _batch(REWARDS, DONES)
     going = ReturnNormalizer(GAMMA)
@@ -122,6 +143,10 @@ def test_return_norm_turns_the_shaper_on_for_every_collector_trainer(recipe):
         RewardShaper(cfg, [], 0, 0, torch.device("cpu"))
     with pytest.raises(ConfigError, match="shaping.return_norm"):
         load_recipe(ROOT / "recipes" / recipe, ["shaping.return_norm=3"])
+    with pytest.raises(ConfigError, match="shaping.return_norm_floor"):
+        load_recipe(ROOT / "recipes" / recipe, ["shaping.return_norm_floor=0"])
+    floored = load_recipe(ROOT / "recipes" / recipe, ["shaping.return_norm=true", "shaping.return_norm_floor=0.1"])[1]
+    assert RewardShaper(floored, [], 0, 0, torch.device("cpu"), gamma=gamma).return_norm.floor == 0.1
 
 
 @pytest.mark.parametrize("recipe", ["tiny.yaml", "baselines/ppo_mlp_cartpole.yaml"])

@@ -55,6 +55,7 @@ class ShapingConfig:
     # divide that reward by a running std of its discounted return (machinery/return_norm.py): value targets of
     # about unit size whatever the task's reward size; reward_scale still applies first
     return_norm: bool = False
+    return_norm_floor: float = 1e-4  # the smallest return std divided by: the factor is at most 1 / floor
 
 
 @dataclass
@@ -90,6 +91,7 @@ MACHINERY_RANGES: dict[str, Range] = {
     "shaping.novelty.alpha": (NON_NEGATIVE, ">= 0"),
     "shaping.time_penalty": (NON_NEGATIVE, ">= 0"),
     "shaping.reward_scale": (POSITIVE, "> 0"),
+    "shaping.return_norm_floor": (POSITIVE, "> 0"),
     "success_buffer.mix": (lambda v: 0 < v < 1, "in (0, 1)"),
     "success_buffer.rho_clip": (POSITIVE, "> 0"),
     "ogm.alpha": (POSITIVE, "> 0"),

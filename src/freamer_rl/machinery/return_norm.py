@@ -7,11 +7,13 @@ gradient is too small to shape the trunk's features). ``shaping.return_norm`` se
 
     G_t     = gamma * G_{t-1} * (1 - done_{t-1}) + r_t       per env row, carried from batch to batch
     sigma^2 = running variance of G over every step seen     (moments merged per batch: Chan et al. 1979)
-    r'_t    = clamp(r_t / max(sigma, STD_FLOOR), -CLIP, CLIP)
+    r'_t    = clamp(r_t / max(sigma, floor), -CLIP, CLIP)
 
 The mean of ``G`` is not subtracted (shifting the reward would change which episodes pay). Rewards are divided by the
 statistics that include the current batch. ``CLIP`` bounds the first rewards of a sparse task, seen while ``sigma``
-is still near 0; every clipped step is counted (``return_norm_clipped``).
+is still near 0; every clipped step is counted (``return_norm_clipped``). ``floor`` (``shaping.return_norm_floor``,
+default :data:`STD_FLOOR`) caps the factor at ``1 / floor``: with only a sparse goal reward the returns' spread stays
+small, the factor large, and a small floor lets the clip flatten every goal reward to ``CLIP``.
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ from torch import nn
 
 __all__ = ["ReturnNormalizer"]
 
-#: smallest std divided by (a task whose returns are still all 0 would otherwise divide by 0)
+#: default smallest std divided by (a task whose returns are still all 0 would otherwise divide by 0)
 STD_FLOOR = 1e-4
 #: bound on a normalised reward (SB3's default ``clip_reward``)
 CLIP = 10.0
@@ -37,21 +39,26 @@ class ReturnNormalizer(nn.Module):
 
     Args:
         gamma: the discount of the returns whose spread is measured (PPO's ``gamma``), in ``(0, 1]``.
+        floor: the smallest std divided by (finite, > 0): the factor is at most ``1 / floor``.
 
     Raises:
-        ValueError: ``gamma`` outside ``(0, 1]``; ``reward`` and ``done`` of different sizes.
+        ValueError: ``gamma`` outside ``(0, 1]``; a floor that is not finite and > 0; ``reward`` and ``done`` of
+            different sizes.
     """
 
-    def __init__(self, gamma: float) -> None:
+    def __init__(self, gamma: float, floor: float = STD_FLOOR) -> None:
         super().__init__()
         if not (math.isfinite(gamma) and 0.0 < gamma <= 1.0):
             raise ValueError(f"ReturnNormalizer: gamma must be in (0, 1], got {gamma!r}")
+        if not (math.isfinite(floor) and floor > 0):
+            raise ValueError(f"ReturnNormalizer: floor must be a finite number > 0, got {floor!r}")
         self.gamma = float(gamma)
+        self.floor = float(floor)
         self.count = torch.zeros((), dtype=torch.float64)
         self.mean = torch.zeros((), dtype=torch.float64)
         self.var = torch.zeros((), dtype=torch.float64)
         self.carry = torch.zeros(0, dtype=torch.float64)
-        self.last_scale = torch.ones(())  # 1 / max(sigma, STD_FLOOR) of the last call (diagnostic)
+        self.last_scale = torch.ones(())  # 1 / max(sigma, floor) of the last call (diagnostic)
         self.last_clipped = torch.zeros(())  # steps clipped in the last call
 
     def returns(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
@@ -91,7 +98,7 @@ class ReturnNormalizer(nn.Module):
             )
         with torch.no_grad():
             self._merge(self.returns(reward, done))
-            scale = self.var.sqrt().clamp_min(STD_FLOOR).reciprocal().to(reward.dtype)
+            scale = self.var.sqrt().clamp_min(self.floor).reciprocal().to(reward.dtype)
             scaled = reward * scale
             out = scaled.clamp(-CLIP, CLIP)
             self.last_scale = scale
@@ -115,4 +122,4 @@ class ReturnNormalizer(nn.Module):
         return {"return_scale": self.last_scale, "return_norm_clipped": self.last_clipped}
 
     def extra_repr(self) -> str:
-        return f"gamma={self.gamma}"
+        return f"gamma={self.gamma}, floor={self.floor}"

@@ -93,7 +93,7 @@ class RewardShaper:
         if s.return_norm:
             if gamma is None:
                 raise ValueError("shaping.return_norm: this trainer gives the reward shaper no discount (gamma)")
-            self.return_norm = ReturnNormalizer(gamma)
+            self.return_norm = ReturnNormalizer(gamma, s.return_norm_floor)
         self.active = bool(terms) or s.time_penalty > 0 or s.reward_scale != 1.0 or s.return_norm
         self.mixer = RewardMixer(
             terms,
