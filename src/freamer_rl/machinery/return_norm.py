@@ -1,8 +1,8 @@
 """Return-based reward normalisation: the reward PPO trains on, divided by a running std of its discounted return.
 
 A critic that shares the policy's trunk regresses on returns whose size is the task's: ~100 on CartPole (the value
-loss's gradient crowds the policy's out after clipping), ~0.05-0.3 on DoorKey-8x8 with a small novelty bonus (its
-gradient is too small to shape the trunk's features). ``shaping.return_norm`` sets the scale from the data, as SB3's
+loss's gradient crowds the policy's out after clipping), ~0.05-0.3 on DoorKey-8x8 with a small novelty bonus (where
+FreamerV1 learned on 2 of 5 seeds, and on 5 of 5 with the reward normalised: recipes/suites/scratch_doorkey8x8.yaml). ``shaping.return_norm`` sets the scale from the data, as SB3's
 ``VecNormalize(norm_reward=True)`` and openai/baselines do (our own code)::
 
     G_t     = gamma * G_{t-1} * (1 - done_{t-1}) + r_t       per env row, carried from batch to batch
@@ -96,6 +96,9 @@ class ReturnNormalizer(nn.Module):
             raise ValueError(
                 f"ReturnNormalizer: reward {tuple(reward.shape)} and done {tuple(done.shape)} must have the same size"
             )
+        if self.mean.device != reward.device:  # plain tensors, not buffers: follow the batch's device
+            self.count, self.mean, self.var = (t.to(reward.device) for t in (self.count, self.mean, self.var))
+            self.carry = self.carry.to(reward.device)
         with torch.no_grad():
             self._merge(self.returns(reward, done))
             scale = self.var.sqrt().clamp_min(self.floor).reciprocal().to(reward.dtype)
