@@ -77,7 +77,7 @@ def test_a_first_sparse_reward_is_clipped_and_counted():
     reward = torch.zeros(3, 5, 1)
     reward[1, 4] = 1e-2  # one rare reward
     done = torch.zeros(3, 5, 1, dtype=torch.bool)
-    norm = ReturnNormalizer(GAMMA)
+    norm = ReturnNormalizer(GAMMA, floor=1e-4)
     norm(torch.zeros(3, 5, 1), done)  # nothing yet: std 0, divided by the floor
     assert float(norm.diagnostics()["return_scale"]) == pytest.approx(1e4)
     norm.count = torch.tensor(1e9, dtype=torch.float64)  # a long run of zero returns: one batch barely moves the std
@@ -87,12 +87,13 @@ def test_a_first_sparse_reward_is_clipped_and_counted():
 
 
 def test_the_floor_caps_the_factor_so_goal_rewards_keep_their_size():
-    """A sparse goal reward: with the default floor the factor is ~1e4 and the goal is clipped to CLIP; with floor 0.1
-    (shaping.return_norm_floor) the factor is at most 10 and the goal keeps its size, x 10."""
+    """A sparse goal reward: with a floor of 1e-4 the factor is ~1e4 and the goal is clipped to CLIP; with the default
+    floor 0.1 (shaping.return_norm_floor) the factor is at most 10 and the goal keeps its size, x 10."""
     reward = torch.zeros(4, 8, 1)
     reward[2, 7] = 0.7
     done = torch.zeros(4, 8, 1, dtype=torch.bool)
-    small, capped = ReturnNormalizer(GAMMA), ReturnNormalizer(GAMMA, floor=0.1)
+    small, capped = ReturnNormalizer(GAMMA, floor=1e-4), ReturnNormalizer(GAMMA)
+    assert capped.floor == 0.1
     for norm in (small, capped):
         norm(torch.zeros(4, 8, 1), done)
         norm.count = torch.tensor(1e6, dtype=torch.float64)
@@ -128,17 +129,18 @@ def test_return_norm_turns_the_shaper_on_for_every_collector_trainer(recipe):
     gamma = cfg.impala.gamma if hasattr(cfg, "impala") else cfg.ppo.gamma
     shaper = RewardShaper(cfg, [], 0, 0, torch.device("cpu"), gamma=gamma)
     assert shaper.active and shaper.return_norm is not None and shaper.return_norm.gamma == gamma
-    td = TensorDict({"next": {"reward": torch.ones(2, 3, 1), "done": torch.zeros(2, 3, 1, dtype=torch.bool)}}, [2, 3])
+    reward = torch.full((2, 3, 1), 10.0)  # returns spread above the floor even after CartPole's x 0.05
+    td = TensorDict({"next": {"reward": reward, "done": torch.zeros(2, 3, 1, dtype=torch.bool)}}, [2, 3])
     td["next", "terminated"] = td["next", "done"].clone()
     logs = shaper(td, 0.0)
-    returns = torch.tensor([1.0, 1 + gamma, 1 + gamma + gamma**2] * 2, dtype=torch.float64)
+    returns = 10 * torch.tensor([1.0, 1 + gamma, 1 + gamma + gamma**2] * 2, dtype=torch.float64)
     scale = float(1 / returns.var(unbiased=False).sqrt())
-    assert torch.allclose(td["next", "shaped_reward"], torch.full((2, 3, 1), scale))
+    assert torch.allclose(td["next", "shaped_reward"], torch.full((2, 3, 1), 10 * scale))
     # the normaliser sees the reward after shaping.reward_scale (CartPole's recipe: 0.05), so whatever that scale,
     # the critic's targets come out the same
     assert logs["return_scale"] == pytest.approx(scale / cfg.shaping.reward_scale)
     assert logs["return_norm_clipped"] == 0
-    assert td["next", "reward"].eq(1).all()  # the logged reward stays the env's
+    assert td["next", "reward"].eq(10).all()  # the logged reward stays the env's
     with pytest.raises(ValueError, match="shaping.return_norm: this trainer gives"):
         RewardShaper(cfg, [], 0, 0, torch.device("cpu"))
     with pytest.raises(ConfigError, match="shaping.return_norm"):

@@ -55,7 +55,7 @@ class ShapingConfig:
     # divide that reward by a running std of its discounted return (machinery/return_norm.py): value targets of
     # about unit size whatever the task's reward size; reward_scale still applies first
     return_norm: bool = False
-    return_norm_floor: float = 1e-4  # the smallest return std divided by: the factor is at most 1 / floor
+    return_norm_floor: float = 0.1  # the smallest return std divided by: the factor is at most 1 / floor
 
 
 @dataclass
