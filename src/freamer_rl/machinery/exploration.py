@@ -33,6 +33,8 @@ from torch import nn
 from torchrl.data import Composite, Unbounded
 from torchrl.envs import Transform
 
+from freamer_rl.layers.moments import merge_moments
+
 logger = logging.getLogger(__name__)
 
 __all__ = ["CuriosityModel", "NoveltyBonus", "next_step_valid", "vision_language_similarity"]
@@ -310,12 +312,10 @@ class CuriosityModel(nn.Module):
         n = mask.sum()
         batch_mean = (err * mask).sum() / n.clamp_min(1.0)
         batch_var = ((err - batch_mean).pow(2) * mask).sum() / n.clamp_min(1.0)
-        total = self.err_count + n
-        delta = batch_mean - self.err_mean
-        m2 = self.err_var * self.err_count + batch_var * n + delta.pow(2) * self.err_count * n / total
-        self.err_mean.add_(delta * n / total)
-        self.err_var.copy_(m2 / total)
-        self.err_count.copy_(total)
+        count, mean, var = merge_moments(self.err_count, self.err_mean, self.err_var, n, batch_mean, batch_var)
+        self.err_mean.copy_(mean)
+        self.err_var.copy_(var)
+        self.err_count.copy_(count)
 
     def intrinsic_reward(
         self, phi: torch.Tensor, action: torch.Tensor, valid: torch.Tensor, *, update_stats: bool = True

@@ -23,6 +23,8 @@ import math
 import torch
 from torch import nn
 
+from freamer_rl.layers.moments import merge_moments
+
 __all__ = ["ReturnNormalizer"]
 
 #: default smallest std divided by, so the factor is at most 10: with a floor of 1e-4 (the first runs') a goal-only
@@ -82,14 +84,9 @@ class ReturnNormalizer(nn.Module):
 
     def _merge(self, g: torch.Tensor) -> None:
         """Chan et al.'s parallel update of (count, mean, var) with the batch's returns."""
-        n = torch.tensor(float(g.numel()), dtype=torch.float64, device=g.device)
-        b_mean, b_var = g.mean(), g.var(unbiased=False)
-        total = self.count + n
-        delta = b_mean - self.mean
-        m2 = self.var * self.count + b_var * n + delta.square() * self.count * n / total
-        self.mean = self.mean + delta * n / total
-        self.var = m2 / total
-        self.count = total
+        self.count, self.mean, self.var = merge_moments(
+            self.count, self.mean, self.var, g.numel(), g.mean(), g.var(unbiased=False)
+        )
 
     def forward(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         """The normalised reward, same shape and dtype as ``reward [*B, T, 1]``; ``done`` ``[*B, T, 1]`` or

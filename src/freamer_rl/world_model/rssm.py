@@ -43,6 +43,7 @@ from torch import nn
 from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import LossModule
 
+from freamer_rl.layers.moments import merge_moments
 from freamer_rl.world_model.functional import (
     _check_last_dim,
     _flat,
@@ -451,10 +452,7 @@ class WorldModel(nn.Module):
             n_new = x.shape[0]
             m_b, v_b = x.mean(0), x.var(0, unbiased=False)
             mean, var = getattr(self, f"recon_mean_{i}").double(), getattr(self, f"recon_var_{i}").double()
-            n = n_old + n_new
-            delta = m_b - mean
-            new_mean = mean + delta * (n_new / n)
-            new_var = (var * n_old + v_b * n_new + delta.pow(2) * n_old * n_new / n) / n
+            _, new_mean, new_var = merge_moments(n_old, mean, var, n_new, m_b, v_b)
             getattr(self, f"recon_mean_{i}").copy_(new_mean.float())
             getattr(self, f"recon_var_{i}").copy_(new_var.float())
         if n_new is not None:
