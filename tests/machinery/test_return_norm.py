@@ -151,17 +151,20 @@ def test_return_norm_turns_the_shaper_on_for_every_collector_trainer(recipe):
     assert RewardShaper(floored, [], 0, 0, torch.device("cpu"), gamma=gamma).return_norm.floor == 0.1
 
 
-@pytest.mark.parametrize("recipe", ["tiny.yaml", "baselines/ppo_mlp_cartpole.yaml"])
-def test_a_run_trains_on_normalised_rewards_and_resumes_their_scale(recipe, tmp_path):
+SMALL_GYM = ["env.num_envs=2", "ppo.frames_per_batch=128", "ppo.minibatch_size=64"]
+
+
+@pytest.mark.parametrize(
+    "recipe, trainer_class, sizes",
+    [("tiny.yaml", Trainer, []), ("baselines/ppo_mlp_cartpole.yaml", PPOBaselineTrainer, SMALL_GYM)],
+)
+def test_a_run_trains_on_normalised_rewards_and_resumes_their_scale(recipe, trainer_class, sizes, tmp_path):
     """Two batches with return_norm on: progress.csv logs the scale, the checkpoint holds the statistics, and a
     resumed trainer starts from them and trains a third batch."""
     path = ROOT / "recipes" / recipe
-    small = ["env.num_envs=2", "ppo.frames_per_batch=128", "ppo.minibatch_size=64"]
-    over = ["shaping.return_norm=true", "run.total_frames=256", "logging.checkpoint_every_frames=128"]
-    over += small if "cartpole" in recipe else []
-    cfg = load_config(path, over)
+    common = ["shaping.return_norm=true", "logging.checkpoint_every_frames=128", *sizes]
+    cfg = load_config(path, [*common, "run.total_frames=256"])
     torch.manual_seed(0)
-    trainer_class = PPOBaselineTrainer if "baselines" in recipe else Trainer
     trainer = trainer_class(cfg, tmp_path / "run")
     trainer.train()
     with open(tmp_path / "run" / "progress.csv", newline="") as f:
@@ -171,7 +174,7 @@ def test_a_run_trains_on_normalised_rewards_and_resumes_their_scale(recipe, tmp_
     saved = torch.load(latest_checkpoint(tmp_path / "run"), weights_only=True)["shaping"]["return_norm"]
     assert float(saved["count"]) == 2 * trainer.frames_per_batch
     shutil.copytree(tmp_path / "run", tmp_path / "again")
-    cfg3 = load_config(path, [*over[:1], "run.total_frames=384", *over[2:]])
+    cfg3 = load_config(path, [*common, "run.total_frames=384"])
     again = trainer_class(cfg3, tmp_path / "again")
     assert float(again.shaper.return_norm.count) == float(saved["count"])
     assert torch.equal(again.shaper.return_norm.carry, saved["carry"])

@@ -2,8 +2,10 @@
 
 A critic that shares the policy's trunk regresses on returns whose size is the task's: ~100 on CartPole (the value
 loss's gradient crowds the policy's out after clipping), ~0.05-0.3 on DoorKey-8x8 with a small novelty bonus (where
-FreamerV1 learned on 2 of 5 seeds, and on 5 of 5 with the reward normalised: recipes/suites/scratch_doorkey8x8.yaml). ``shaping.return_norm`` sets the scale from the data, as SB3's
-``VecNormalize(norm_reward=True)`` and openai/baselines do (our own code)::
+FreamerV1 learned on 2 of 5 seeds, and on 5 of 5 with the reward normalised: recipes/suites/scratch_doorkey8x8.yaml).
+``shaping.return_norm`` sets the scale from the data, as SB3's ``VecNormalize(norm_reward=True)`` and
+openai/baselines do (our own code; TorchRL's ``VecNorm`` transform scales by the per-step reward's own statistics,
+and any env transform acts before the trainer mixes its bonus terms in)::
 
     G_t     = gamma * G_{t-1} * (1 - done_{t-1}) + r_t       per env row, carried from batch to batch
     sigma^2 = running variance of G over every step seen     (moments merged per batch: Chan et al. 1979)
@@ -82,12 +84,6 @@ class ReturnNormalizer(nn.Module):
         self.carry = g
         return out
 
-    def _merge(self, g: torch.Tensor) -> None:
-        """Chan et al.'s parallel update of (count, mean, var) with the batch's returns."""
-        self.count, self.mean, self.var = merge_moments(
-            self.count, self.mean, self.var, g.numel(), g.mean(), g.var(unbiased=False)
-        )
-
     def forward(self, reward: torch.Tensor, done: torch.Tensor) -> torch.Tensor:
         """The normalised reward, same shape and dtype as ``reward [*B, T, 1]``; ``done`` ``[*B, T, 1]`` or
         ``[*B, T]``."""
@@ -99,7 +95,10 @@ class ReturnNormalizer(nn.Module):
             self.count, self.mean, self.var = (t.to(reward.device) for t in (self.count, self.mean, self.var))
             self.carry = self.carry.to(reward.device)
         with torch.no_grad():
-            self._merge(self.returns(reward, done))
+            g = self.returns(reward, done)
+            self.count, self.mean, self.var = merge_moments(
+                self.count, self.mean, self.var, g.numel(), g.mean(), g.var(unbiased=False)
+            )
             scale = self.var.sqrt().clamp_min(self.floor).reciprocal().to(reward.dtype)
             scaled = reward * scale
             out = scaled.clamp(-CLIP, CLIP)
