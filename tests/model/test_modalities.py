@@ -34,6 +34,8 @@ SPECS = {
     "mission_tokens": Bounded(low=0, high=9, shape=(5,), dtype=torch.int64),
     "reward_history": Unbounded(shape=(4,), dtype=torch.float32),
     "observation": Unbounded(shape=(6,), dtype=torch.float32),
+    "imu": Unbounded(shape=(36,), dtype=torch.float32),
+    "hr_features": Unbounded(shape=(16,), dtype=torch.float32),
 }
 
 

@@ -89,7 +89,20 @@ def _coerce(value: Any, tp: Any, path: str) -> Any:
         if isinstance(value, str):
             return value
         raise ConfigError(f"{path}: expected str, got {type(value).__name__} {value!r}")
+    if tp is typing.Any:  # plain YAML data, checked by whoever reads it (e.g. an env adapter's options)
+        return _plain_data(value, path)
     raise ConfigError(f"{path}: unsupported field type {tp}")
+
+
+def _plain_data(value: Any, path: str) -> Any:
+    """``value`` when it is YAML data (None, bool, number, str, and lists / string-keyed mappings of them)."""
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, (list, tuple)):
+        return [_plain_data(v, f"{path}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict) and all(isinstance(k, str) for k in value):
+        return {k: _plain_data(v, f"{path}.{k}") for k, v in value.items()}
+    raise ConfigError(f"{path}: expected YAML data (numbers, strings, lists, mappings), got {type(value).__name__}")
 
 
 def _build(cls: type, data: dict, prefix: str = "") -> Any:

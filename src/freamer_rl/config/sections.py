@@ -80,6 +80,12 @@ class EnvConfig:
     # adapters whose reset is costly (Crafter's world generation) prepare the next episode in this many worker
     # processes while the current one runs; 0: inline. An adapter without the option refuses a value > 0
     reset_workers: int = 0
+    # keyword options of the adapter's env factory, for adapters that declare them (EnvAdapter.option_names), e.g.
+    # the health env's {subjects: [101, 102], episode_length: 120, rate_hz: 0.2}; another name is refused
+    options: dict[str, Any] = field(default_factory=dict)
+    # options that replace env.options in evaluation envs (every evaluator's episodes): e.g. {subjects: [104]} to
+    # evaluate on a subject left out of training (leave-one-subject-out)
+    eval_options: dict[str, Any] = field(default_factory=dict)
 
 
 @dataclass

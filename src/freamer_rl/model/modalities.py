@@ -193,6 +193,9 @@ MODALITIES: dict[str, ModalitySpec] = {
     "language": ModalitySpec(("mission_tokens",), "slots", -3.0, _language_encoder, _check_tokens, num_keys=1),
     "vision": ModalitySpec(("pixels",), "slots", -5.0, _vision_encoder, _check_pixels, num_keys=1),
     "vector": ModalitySpec(("observation",), "vector", -3.0, _vector_encoder, check_float),
+    # the wearable-health env's two sensors (freamer_rl_envs.health), each with its own encoder and refiner
+    "imu": ModalitySpec(("imu",), "vector", -3.0, _vector_encoder, check_float),
+    "heart_rate": ModalitySpec(("hr_features",), "vector", -3.0, _vector_encoder, check_float),
 }
 
 

@@ -43,6 +43,9 @@ class EnvAdapter:
         writes: the optional entries the env can compute when a config asks for them, e.g. ``"lang_reward"``
             (R_lang of the MiniGrid mission). A config field that asks for one the adapter does not list (see
             :data:`freamer_rl.run.envs.ENV_WRITTEN`) is refused before the env is built. Empty: none.
+        option_names: the keyword options of ``make_env`` / ``make_batched_env`` a recipe may set directly through
+            ``env.options`` (and ``env.eval_options`` for evaluation envs), e.g. the health env's ``subjects``;
+            the factory checks their values. Empty: the adapter takes none that way.
     """
 
     make_env: Callable[..., Any]
@@ -51,6 +54,7 @@ class EnvAdapter:
     make_batched_env: Callable[..., Any] | None = None
     achievements: tuple[str, ...] = ()
     writes: tuple[str, ...] = ()
+    option_names: tuple[str, ...] = ()
 
 
 ENTRY_POINT_GROUP = "freamer_rl.envs"

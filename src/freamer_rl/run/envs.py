@@ -10,6 +10,7 @@ loaded (:func:`check_env_writes`, called by the trainer's validator).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import importlib
 from collections.abc import Sequence
@@ -24,6 +25,8 @@ from freamer_rl.run.corruption import copy_transforms
 __all__ = [
     "ENV_WRITTEN",
     "check_env_writes",
+    "check_env_options",
+    "eval_config",
     "import_env_modules",
     "env_options",
     "make_single_env",
@@ -75,11 +78,27 @@ def _import_modules(names: Sequence[str]) -> None:
             ) from None
 
 
+def check_env_options(cfg: Any) -> None:
+    """One ConfigError line for a key of ``env.options`` / ``env.eval_options`` that the adapter does not declare
+    (``EnvAdapter.option_names``): it would be ignored or fail deep inside the env factory."""
+    adapter = env_registry.get_adapter(cfg.env.adapter)
+    for section in ("options", "eval_options"):
+        for name in getattr(cfg.env, section, {}) or {}:
+            if name not in adapter.option_names:
+                takes = ", ".join(adapter.option_names) or "none"
+                raise ConfigError(
+                    f"env.{section}.{name}: the {cfg.env.adapter!r} adapter takes no option {name!r} "
+                    f"(options it takes: {takes})"
+                )
+
+
 def env_options(cfg: Any) -> dict[str, Any]:
-    """Adapter keyword options implied by the config; the adapter declares them (see ``EnvAdapter.options``).
+    """Adapter keyword options: those the adapter derives from the config (``EnvAdapter.options``), then the
+    recipe's own ``env.options`` (checked by :func:`check_env_options`).
 
     Raises:
-        ConfigError: ``env.reset_workers`` > 0 for an adapter that does not take it (it would be ignored).
+        ConfigError: ``env.reset_workers`` > 0 for an adapter that does not take it (it would be ignored); an
+            ``env.options`` key the adapter does not declare.
     """
     options = env_registry.get_adapter(cfg.env.adapter).options(cfg)
     workers = getattr(cfg.env, "reset_workers", 0)
@@ -88,7 +107,18 @@ def env_options(cfg: Any) -> dict[str, Any]:
             f"env.reset_workers={workers}: the {cfg.env.adapter!r} adapter prepares no resets in workers (Crafter "
             "does); set env.reset_workers=0"
         )
-    return options
+    check_env_options(cfg)
+    return {**options, **(getattr(cfg.env, "options", {}) or {})}
+
+
+def eval_config(cfg: Any) -> Any:
+    """``cfg`` with ``env.eval_options`` laid over ``env.options``: the config of every evaluation env (e.g. a
+    subject left out of training). The same object when there are none."""
+    extra = getattr(cfg.env, "eval_options", {}) or {}
+    if not extra:
+        return cfg
+    env = dataclasses.replace(cfg.env, options={**cfg.env.options, **extra}, eval_options={})
+    return dataclasses.replace(cfg, env=env)
 
 
 def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:

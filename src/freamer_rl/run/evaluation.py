@@ -18,7 +18,7 @@ from freamer_rl.errors import CheckpointError, ConfigError
 from freamer_rl.run import env_registry
 from freamer_rl.run.checkpoint import load_checkpoint
 from freamer_rl.run.corruption import corruption_transforms, eval_entries
-from freamer_rl.run.envs import make_batched_env
+from freamer_rl.run.envs import eval_config, make_batched_env
 from freamer_rl.run.metrics import LogMeans
 
 __all__ = ["read_checkpoint_config", "run_episodes"]
@@ -54,7 +54,9 @@ def run_episodes(
 
     The env is corrupted as ``corrupt`` says (``env.corrupt``-style entries), else as the config's ``env.corrupt``
     entries for evaluation (``when: eval`` or ``both``). ``step_metrics(td) -> {name: scalar tensor}`` is called on
-    every step the policy wrote (e.g. FreamerV1's refiner displacement); the result holds the means over steps."""
+    every step the policy wrote (e.g. FreamerV1's refiner displacement); the result holds the means over steps.
+    The env takes ``env.eval_options`` over ``env.options`` (e.g. a subject left out of training)."""
+    cfg = eval_config(cfg)
     n_envs = min(num_envs or cfg.env.num_envs, episodes)
     entries = eval_entries(cfg.env.corrupt, corrupt)
     corruption = corruption_transforms(entries, None)
@@ -86,6 +88,7 @@ def run_episodes(
     succ = [e["success"] for e in chosen if e["success"] is not None]
     return {
         "env": cfg.env.id,
+        **({"env_options": dict(cfg.env.options)} if getattr(cfg.env, "options", None) else {}),
         "episodes": len(chosen),
         # NaN when the env has no notion of success (e.g. CartPole): see EnvAdapter.success
         "success_rate": sum(succ) / len(succ) if succ else float("nan"),

@@ -69,7 +69,7 @@ from freamer_rl.model.modalities import MODALITIES
 from freamer_rl.model.params import parameter_table
 from freamer_rl.model.weights import load_model_state
 from freamer_rl.run.corruption import corruption_transforms, eval_entries
-from freamer_rl.run.envs import check_env_writes, probe_specs
+from freamer_rl.run.envs import check_env_options, check_env_writes, probe_specs
 from freamer_rl.run.evaluation import read_checkpoint_config, run_episodes
 from freamer_rl.run.loop import RunLoop, resolve_run_dir
 from freamer_rl.run.metrics import LogMeans
@@ -114,6 +114,7 @@ def validate(cfg: FreamerConfig) -> None:
     """Cross-field checks of a built FreamerConfig (types, unknown keys and number ranges are the loader's)."""
     check_base(cfg)
     check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
+    check_env_options(cfg)  # env.options / env.eval_options the adapter does not take
     for i, c in enumerate(cfg.env.corrupt):
         if c.key.startswith("embed.") and (
             c.when != "eval" or c.kind != "gaussian" or c.key.split(".", 1)[1] not in cfg.model.modalities

@@ -31,7 +31,7 @@ from freamer_rl.config.sections import (
 from freamer_rl.errors import ConfigError
 from freamer_rl.machinery.checks import check_shaping
 from freamer_rl.machinery.config import MACHINERY_RANGES, ShapingConfig, SuccessBufferConfig
-from freamer_rl.run.envs import check_env_writes
+from freamer_rl.run.envs import check_env_options, check_env_writes
 
 __all__ = [
     "NETWORK_KINDS",
@@ -140,6 +140,7 @@ def check_baseline_shaping(cfg, trainer: str) -> None:
                 "reward, novelty bonus, time penalty and adaptive decay work for every trainer)"
             )
     check_env_writes(cfg)  # shaping terms the env cannot provide (R_lang on Crafter), refused at load
+    check_env_options(cfg)  # env.options / env.eval_options the adapter does not take
 
 
 @dataclass
