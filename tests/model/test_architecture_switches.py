@@ -117,7 +117,7 @@ def test_resume_with_another_placement_is_refused(tmp_path):
         ("model.flow.placement=sideways", "model.flow.placement: expected one of pre, post, off"),
         ("model.fusion=attention", "model.fusion: expected one of fno, concat, mean"),
         ("model.fusion_hidden=64", "model.fusion_hidden: got 64, but only model.fusion=concat has an MLP"),
-        ("model.flow.gate_init.imu=-1", "model.flow.gate_init: unknown modality 'imu'"),
+        ("model.flow.gate_init.lidar=-1", "model.flow.gate_init: unknown modality 'lidar'"),
         ("model.flow.reliability=sometimes", "model.flow.reliability: expected one of off, gate, weight, both"),
         ("model.flow.noise_scale=huge", "model.flow.noise_scale: expected one of absolute, relative"),
         ("model.flow.reliability_margin=-1", "model.flow.reliability_margin"),
