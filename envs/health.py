@@ -62,7 +62,8 @@ percentile of their heart rate, ``gain`` = median of ``(HR - HR_rest) / (MET - 1
 (clipped to [6, 18]), ``tau = 20 s``, ``drift = 12 bpm``.
 
 Reset: each reset batch element draws a subject (uniformly from ``subjects``) and a start window (uniformly over
-the recording, wrapping around at its end); heart rate, fatigue and HRV start from the recording's values there,
+the recording, wrapping around at its end), and with ``gain_jitter`` j > 0 a factor ``U(1 - j, 1 + j)`` on the
+subject's ``gain`` for the episode (domain randomisation for policies that must meet unseen subjects); heart rate, fatigue and HRV start from the recording's values there,
 cumulative exertion and the episode metrics from 0. ``"_reset"`` masks (``[B, 1]``) reset only those elements.
 
 IMU observation: the timeline's window, or (after Change) a random window of the new activity from the same subject,
@@ -177,7 +178,10 @@ class HealthEnv(EnvBase):
         feature_params: HRFeatureParams | None = None,
         seed: int | None = None,
         device: torch.device | str = "cpu",
+        gain_jitter: float = 0.0,
     ) -> None:
+        if not 0.0 <= float(gain_jitter) < 1.0:
+            raise ValueError(f"gain_jitter: expected a fraction in [0, 1), got {gain_jitter!r}")
         if int(batch_size) != batch_size or batch_size < 1:
             raise ValueError(f"batch_size: expected an integer >= 1, got {batch_size!r}")
         if int(episode_length) != episode_length or episode_length < 1:
@@ -191,6 +195,7 @@ class HealthEnv(EnvBase):
         self.B = int(batch_size)
         self.episode_length = int(episode_length)
         self.reward_weights = weights
+        self.gain_jitter = float(gain_jitter)
         self.dyn = dynamics or HealthDynamics()
         self.fp = feature_params or HRFeatureParams()
         self._tables = tables  # kept for planning_copy
@@ -370,6 +375,9 @@ class HealthEnv(EnvBase):
         s = torch.randint(len(self.subjects), (B,), generator=self._rng, device=dev)
         cur = (torch.rand(B, generator=self._rng, device=dev) * self._len[s]).long()
         hr0 = self._hr_data[s, cur]
+        gain = self._gain[s]
+        if self.gain_jitter > 0.0:  # a config constant: gain_jitter 0 draws nothing, so its episodes stay the same
+            gain = gain * (1.0 + self.gain_jitter * (2.0 * torch.rand(B, generator=self._rng, device=dev) - 1.0))
         new = {
             "subject_index": s,
             "cursor": cur,
@@ -388,7 +396,7 @@ class HealthEnv(EnvBase):
             "ep_viol": torch.zeros_like(st.ep_viol),
             # per-element copies of the subject constants (saves gathers on every step)
             "hr_rest": self._hr_rest[s],
-            "gain": self._gain[s],
+            "gain": gain,
             "alpha": self._alpha[s],
             "drift": self._drift[s],
             "length": self._len[s],
@@ -512,6 +520,7 @@ class HealthEnv(EnvBase):
             feature_params=self.fp,
             seed=seed,
             device=self.device,
+            gain_jitter=self.gain_jitter,
         )
 
     def _set_seed(self, seed: int | None) -> None:
@@ -542,6 +551,7 @@ def make_health_env(
     synthetic_duration_s: float = 1800.0,
     data_seed: int = 0,
     dynamics: HealthDynamics | None = None,
+    gain_jitter: float = 0.0,
 ) -> HealthEnv:
     """Build a batched :class:`HealthEnv` (``batch_size=[batch_size]``).
 
@@ -561,6 +571,10 @@ def make_health_env(
         rate_hz: steps per second (the 100 Hz data is windowed; 1 Hz default, 10 Hz for finer control; the
             health recipes use 0.2 Hz so that a 15-step imagination spans the heart-rate dynamics).
         dynamics: :class:`HealthDynamics` constants.
+        gain_jitter: domain randomisation of the physiology: each reset scales its subject's heart-rate ``gain``
+            (bpm per MET) by ``U(1 - j, 1 + j)`` for that episode (the target heart rate follows), so a policy
+            trains on fitter and less fit versions of its subjects; 0 (default): the subject's own gain, and no
+            extra random draw (the same episodes as before the option existed).
 
     Raises:
         ValueError: unknown ``env_id``, bad ``subjects`` / ``batch_size`` / ``episode_length`` / ``reward_weights``.
@@ -593,4 +607,5 @@ def make_health_env(
         dynamics=dyn,
         seed=seed,
         device=device,
+        gain_jitter=gain_jitter,
     )

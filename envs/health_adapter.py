@@ -23,6 +23,7 @@ HEALTH_OPTION_NAMES = (
     "reward_weights",
     "synthetic_duration_s",
     "data_seed",
+    "gain_jitter",
 )
 
 

@@ -269,3 +269,39 @@ def test_invalid_arguments():
         make_health_env("MiniGrid-Empty-5x5-v0")
     with pytest.raises(ValueError, match="batch_size"):
         make(0)
+
+
+def test_gain_jitter_scales_each_episodes_gain_and_the_dynamics_use_it():
+    """``gain_jitter=j``: each reset draws the episode's gain in ``gain_subject * [1 - j, 1 + j]``; the next heart
+    rate follows Eq. 3 with that gain (noise-free step), not the subject's own; ``j = 0`` leaves episodes as they
+    were (no extra random draw); the planning copy keeps the option."""
+    env = make(256, seed=2, gain_jitter=0.25)
+    td = env.reset()
+    st = env._st
+    ratio = st.gain / env._gain[st.subject_index]
+    assert 0.75 <= ratio.min() < 0.8 and 1.2 < ratio.max() <= 1.25
+    level = st.level.clone()
+    met_eff = (env._met[env._effective_activity()] - 1.0) * level
+    hr0, fatigue0, gain = st.hr.clone(), st.fatigue.clone(), st.gain.clone()
+    td.set("action", torch.full((256,), CONTINUE)).set("hr_noise", torch.zeros(256))
+    out = env.step(td)
+    expected = hr0 + st.alpha * (st.hr_rest + gain * met_eff + st.drift * fatigue0 - hr0)
+    own = hr0 + st.alpha * (st.hr_rest + env._gain[st.subject_index] * met_eff + st.drift * fatigue0 - hr0)
+    hr = out["next", "heart_rate"].squeeze(-1)
+    assert torch.allclose(hr, expected.clamp(35.0, 230.0), atol=1e-3)
+    assert (hr - own).abs().max() > 1.0
+    assert env.planning_copy(2).gain_jitter == 0.25
+
+    plain, zero = make(4, seed=7), make(4, seed=7, gain_jitter=0.0)
+    actions = torch.randint(5, (25, 4), generator=torch.Generator().manual_seed(1))
+    runs = []
+    for e in (plain, zero):
+        td, trace = e.reset(), []
+        for t in range(25):
+            td = e.step(td.set("action", actions[t]))
+            trace.append(td["next", "heart_rate"].clone())
+            td = step_mdp(td)
+        runs.append(torch.stack(trace))
+    assert torch.equal(runs[0], runs[1])
+    with pytest.raises(ValueError, match=r"gain_jitter: expected a fraction in \[0, 1\)"):
+        make(2, gain_jitter=1.5)

@@ -8,6 +8,7 @@ from typing import Any
 from freamer_rl.errors import ConfigError
 from freamer_rl.layers.dnc import WRITES
 from freamer_rl.layers.flow_matching import RELIABILITY_MODES
+from freamer_rl.model.action_prior import check_action_prior
 from freamer_rl.model.factory import FUSIONS, PLACEMENTS
 from freamer_rl.model.heads import CRITIC_INPUTS
 from freamer_rl.model.modalities import MODALITIES
@@ -64,6 +65,7 @@ def check_model_names(model: Any) -> None:
             raise ConfigError(f"model.observation_keys.{m}: give at least one observation key")
     if len(set(mods)) != len(mods):
         raise ConfigError(f"model.modalities: duplicates in {mods}")
+    check_action_prior(model.action_prior, "model")
     for m in model.freeze_encoders:
         if m not in mods:
             raise ConfigError(f"model.freeze_encoders: '{m}' is not one of model.modalities {mods}")

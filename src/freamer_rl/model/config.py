@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from freamer_rl.config.checks import LAYERS_LIMIT, NON_NEGATIVE, POSITIVE, WIDTH_LIMIT, Range, size_range
+from freamer_rl.model.action_prior import ActionPriorConfig
 
 
 @dataclass
@@ -129,6 +130,8 @@ class ModelConfig:
     flow: FlowConfig = field(default_factory=FlowConfig)
     fno: FNOConfig = field(default_factory=FNOConfig)
     dnc: DNCConfig = field(default_factory=DNCConfig)
+    # a fixed threshold rule on one observation added to the actor's logits (freamer_rl.model.action_prior)
+    action_prior: ActionPriorConfig = field(default_factory=ActionPriorConfig)
     # torch.compile the hot spots that gain from it on CPU: the DNC step (collection, values, and the training loop
     # over time: ~2-3x faster) and the state FNO encoder's maths (~1.4x). Same maths; value checks stay eager.
     # Costs seconds of compiling at the first batch (see README "Speed"; torch caches the kernels on disk). A failed

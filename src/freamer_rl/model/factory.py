@@ -39,6 +39,7 @@ from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.layers.tdmodule import KeyedModule
+from freamer_rl.model.action_prior import check_prior_key
 from freamer_rl.model.config import ModelConfig
 from freamer_rl.model.heads import action_kind, build_actor, build_critic
 from freamer_rl.model.modalities import MODALITIES, EncoderContext, check_observation_keys, modality_keys
@@ -183,7 +184,8 @@ def build_freamer(
     steps.extend(layers)
     trunk = TensorDictSequential(*steps)
 
-    actor = build_actor(action_spec, d, cfg.head_hidden)
+    check_prior_key(cfg.action_prior, observation_spec, action_spec, "model")
+    actor = build_actor(action_spec, d, cfg.head_hidden, prior=cfg.action_prior)
     critic = build_critic(d, cfg.head_hidden, detached=cfg.critic_input == "detached")
     actor_value = ActorValueOperator(trunk, actor, critic)
     return FreamerModules(

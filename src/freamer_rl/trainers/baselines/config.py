@@ -31,6 +31,7 @@ from freamer_rl.config.sections import (
 from freamer_rl.errors import ConfigError
 from freamer_rl.machinery.checks import check_shaping
 from freamer_rl.machinery.config import MACHINERY_RANGES, ShapingConfig, SuccessBufferConfig
+from freamer_rl.model.action_prior import ActionPriorConfig, check_action_prior
 from freamer_rl.run.envs import check_env_options, check_env_writes
 
 __all__ = [
@@ -95,6 +96,8 @@ class NetworkConfig:
     # kind cnn / cnn_lstm: the key the conv stack reads (None: the one [H, W, C] key among observation_keys); name it
     # when several keys are image-shaped (MiniGrid's 7x7x3 grid beside its RGB view), the others are flattened
     image_key: str | None = None
+    # a fixed threshold rule on one observation added to the actor's logits (freamer_rl.model.action_prior)
+    action_prior: ActionPriorConfig = field(default_factory=ActionPriorConfig)
 
 
 def check_network(net: NetworkConfig, kinds: tuple[str, ...] = FEEDFORWARD_KINDS) -> None:
@@ -113,6 +116,7 @@ def check_network(net: NetworkConfig, kinds: tuple[str, ...] = FEEDFORWARD_KINDS
         )
     if net.init not in NETWORK_INITS:
         raise ConfigError(f"network.init: expected one of {', '.join(NETWORK_INITS)}, got {net.init!r}")
+    check_action_prior(net.action_prior, "network")
     if len(net.cnn_channels) != 3 or min(net.cnn_channels) < 1:
         raise ConfigError(
             f"network.cnn_channels: expected 3 positive ints (one per conv layer), got {net.cnn_channels}"

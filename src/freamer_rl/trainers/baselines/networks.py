@@ -28,6 +28,7 @@ from torchrl.envs import TensorDictPrimer
 from torchrl.modules import ActorValueOperator, LSTMModule
 
 from freamer_rl.errors import EnvSetupError
+from freamer_rl.model.action_prior import check_prior_key
 from freamer_rl.model.heads import build_actor, build_critic
 from freamer_rl.trainers.baselines.config import RECURRENT_KINDS, NetworkConfig, lstm_width, network_init
 
@@ -173,7 +174,8 @@ def build_actor_critic(observation_spec, action_spec, net: NetworkConfig) -> Act
         trunk = ActorCriticTrunk(make_encoder, net.shared)
         common = TensorDictModule(trunk, in_keys=list(net.observation_keys), out_keys=[PI, V])
         width = net.hidden
-    actor = build_actor(action_spec, width, net.hidden, in_key=PI)
+    check_prior_key(net.action_prior, observation_spec, action_spec, "network")
+    actor = build_actor(action_spec, width, net.hidden, in_key=PI, prior=net.action_prior)
     critic = build_critic(width, net.hidden, in_key=V)
     if network_init(net) == "torch_default":
         for part in (trunk, actor, critic):

@@ -1,0 +1,120 @@
+"""A fixed threshold rule added to the actor's logits: the policy starts as the rule and PPO learns a residual on it.
+
+``model.action_prior`` (FreamerV1) and ``network.action_prior`` (the TorchRL baselines) take the same section::
+
+    action_prior:
+      key: heart_rate          # one scalar observation (shape [] or [1]); null: no prior (the default)
+      thresholds: [150, 185]   # ascending
+      actions: [0, 1, 4]       # Continue at or below 150, Rest above 150, Alert above 185
+      logit: 2.0               # added to the rule's action's logit
+
+The actor head's logits become ``head(h) + logit * onehot(actions[i])`` with ``i`` the number of thresholds that
+``x`` exceeds (``torch.bucketize``, strict ``>``). The orthogonal head starts near zero (output gain 0.01), so the
+initial policy takes the rule's action with probability ``e^logit / (e^logit + n - 1)`` and its mode *is* the rule
+(PyTorch's default init, ``network.init: torch_default``, starts the head at logits of a few tenths: the mode is the
+rule wherever they differ by less than ``logit``); the loss then trains the head, which can move any state away
+from the rule. The prior
+has no parameters and no host syncs; it reads the observation from the same tensordict as the head, so TorchRL's
+``ClipPPOLoss`` recomputes it unchanged. A kickstart of this kind is only as fair as its use: give it to every arm
+of a comparison (the health suite ``recipes/suites/health_mf_loso.yaml`` gives it to the PPO-MLP and FreamerV1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+from torch import nn
+
+from freamer_rl.errors import ConfigError, EnvSetupError
+
+__all__ = ["ActionPriorConfig", "ThresholdRulePrior", "PriorLogits", "check_action_prior", "check_prior_key"]
+
+
+@dataclass
+class ActionPriorConfig:
+    key: str | None = None  # observation key of one scalar; None: no prior
+    thresholds: list[float] = field(default_factory=list)  # ascending cut points on the observation
+    actions: list[int] = field(default_factory=list)  # len(thresholds) + 1: the action below, between, above them
+    logit: float = 2.0  # added to the rule's action's logit (0: the prior is off but still validated)
+
+
+def check_action_prior(prior: ActionPriorConfig, section: str) -> None:
+    """Every field of ``<section>.action_prior``, named in the error (the action count is checked at build)."""
+    name = f"{section}.action_prior"
+    if prior.key is None:
+        if prior.thresholds or prior.actions:
+            raise ConfigError(f"{name}.key: thresholds/actions are set but key is null; name the observation key")
+        return
+    if not isinstance(prior.key, str) or not prior.key:
+        raise ConfigError(f"{name}.key: expected an observation key (a non-empty string), got {prior.key!r}")
+    if not prior.thresholds:
+        raise ConfigError(f"{name}.thresholds: give at least one threshold")
+    if any(b <= a for a, b in zip(prior.thresholds, prior.thresholds[1:])):
+        raise ConfigError(f"{name}.thresholds: expected strictly ascending values, got {prior.thresholds}")
+    if len(prior.actions) != len(prior.thresholds) + 1:
+        raise ConfigError(
+            f"{name}.actions: expected len(thresholds) + 1 = {len(prior.thresholds) + 1} actions "
+            f"(below, between and above the thresholds), got {len(prior.actions)}: {prior.actions}"
+        )
+    if any(not isinstance(a, int) or a < 0 for a in prior.actions):
+        raise ConfigError(f"{name}.actions: expected action indices >= 0, got {prior.actions}")
+    if not prior.logit >= 0.0:
+        raise ConfigError(f"{name}.logit: expected a value >= 0, got {prior.logit}")
+
+
+def check_prior_key(prior: ActionPriorConfig, observation_spec, action_spec, section: str) -> None:
+    """The env has discrete actions, the prior's key is one of its scalar observations and its actions exist:
+    :class:`EnvSetupError` naming ``<section>.action_prior``."""
+    name = f"{section}.action_prior"
+    if prior.key is None:
+        return
+    num_actions = getattr(getattr(action_spec, "space", None), "n", None)
+    if num_actions is None or action_spec.dtype.is_floating_point:
+        raise EnvSetupError(f"{name}: needs a discrete action (Categorical / OneHot), the env's is {action_spec}")
+    if prior.key not in observation_spec.keys(True, True):
+        known = ", ".join(str(k) for k in observation_spec.keys(True, True))
+        raise EnvSetupError(f"{name}.key: {prior.key!r} is not an observation of the env ({known})")
+    shape = tuple(observation_spec[prior.key].shape)
+    if shape not in ((), (1,)):
+        raise EnvSetupError(f"{name}.key: {prior.key!r} has shape {list(shape)}; the rule reads one scalar ([] or [1])")
+    if max(prior.actions) >= int(num_actions):
+        raise EnvSetupError(f"{name}.actions: {prior.actions} names an action >= the env's {num_actions} actions")
+
+
+class ThresholdRulePrior(nn.Module):
+    """``x [*B] or [*B, 1] -> [*B, n]``: ``logit * onehot(actions[#thresholds below x])`` (no parameters)."""
+
+    def __init__(self, thresholds: list[float], actions: list[int], num_actions: int, logit: float) -> None:
+        super().__init__()
+        self.register_buffer("thresholds", torch.tensor(thresholds, dtype=torch.float32))
+        self.register_buffer("actions", torch.tensor(actions, dtype=torch.long))
+        self.num_actions = int(num_actions)
+        self.logit = float(logit)
+
+    def forward(self, x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+        """``like``: the head's logits ``[*B, n]`` (their batch shape, dtype and device)."""
+        x = x.reshape(like.shape[:-1]).to(self.thresholds.dtype)
+        bucket = torch.bucketize(x.contiguous(), self.thresholds)  # strict: x == threshold stays below it
+        onehot = nn.functional.one_hot(self.actions[bucket], self.num_actions)
+        return self.logit * onehot.to(like.dtype)
+
+
+class PriorLogits(nn.Module):
+    """``(h [*B, d], x) -> head(h) + prior(x)``: the actor head with the rule's logits added."""
+
+    def __init__(self, head: nn.Module, prior: ThresholdRulePrior) -> None:
+        super().__init__()
+        self.head = head
+        self.prior = prior
+
+    def forward(self, h: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        logits = self.head(h)
+        return logits + self.prior(x, logits)
+
+
+def prior_module(prior: ActionPriorConfig | None, num_actions: int) -> ThresholdRulePrior | None:
+    """The prior of a validated config, or ``None`` when it has no key."""
+    if prior is None or prior.key is None:
+        return None
+    return ThresholdRulePrior(list(prior.thresholds), list(prior.actions), num_actions, prior.logit)
