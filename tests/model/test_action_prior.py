@@ -3,6 +3,7 @@ validation, and end to end: a policy carrying the heart-rate rule evaluates to e
 
 from __future__ import annotations
 
+import importlib.util
 import json
 from pathlib import Path
 
@@ -135,3 +136,12 @@ def test_a_policy_with_the_heart_rate_prior_scores_exactly_the_rule(recipe, sect
     cont = run_episodes(cfg, make_reference_policy("continue"), [], episodes=4, deterministic=True, num_envs=4)
     assert rule["return_mean"] != pytest.approx(cont["return_mean"], abs=1.0)  # the rule acts on these episodes
     assert ours["return_mean"] == pytest.approx(rule["return_mean"], abs=1e-4)
+    if section == "network":  # benchmarks/health_action_profile.py: its actions per heart-rate bucket are the rule's
+        spec = importlib.util.spec_from_file_location("profile", ROOT / "benchmarks" / "health_action_profile.py")
+        script = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(script)
+        assert script.main([str(run), "--episodes", "2"]) == 0
+        profile = json.loads((run / "action_profile.json").read_text())
+        assert profile["counts"] == profile["rule_counts"]
+        assert sum(sum(c) for c in profile["counts"].values()) == 80  # 2 episodes of 40 steps
+        assert sum(profile["counts"]["<130"]) < 80  # the rule has more than one bucket to act on
