@@ -140,25 +140,11 @@ DEFAULT_REWARD_WEIGHTS: tuple[float, float, float] = (2.0, 1.0, 0.5)
 
 #: Activity the **Change** action switches to, by current activity id.
 CHANGE_TO: dict[int, int] = {
-    0: 4,  # transient -> walking
-    1: 4,
-    2: 4,
-    3: 4,
-    9: 4,
-    10: 4,
-    11: 4,  # rest -> walking
-    16: 4,
-    17: 4,
-    18: 4,
-    19: 4,  # household -> walking
-    4: 7,  # walking -> Nordic walking
-    7: 6,  # Nordic walking -> cycling
-    6: 4,  # cycling -> walking
-    12: 4,
-    13: 4,  # stairs -> walking
-    5: 6,  # running -> cycling
-    20: 7,  # soccer -> Nordic walking
-    24: 4,  # rope jumping -> walking
+    **dict.fromkeys((0, 1, 2, 3, 9, 10, 11), 4),  # transient, rest -> walking
+    **dict.fromkeys((16, 17, 18, 19), 4),  # household -> walking
+    **{4: 7, 7: 6, 6: 4},  # walking -> Nordic walking -> cycling -> walking
+    **dict.fromkeys((12, 13), 4),  # stairs -> walking
+    **{5: 6, 20: 7, 24: 4},  # running -> cycling, soccer -> Nordic walking, rope jumping -> walking
 }
 
 
