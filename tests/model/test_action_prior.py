@@ -40,6 +40,15 @@ def test_threshold_rule_prior_closed_form(batch, trailing_one):
         assert torch.equal(out.reshape(-1, 5), want.expand(out.reshape(-1, 5).shape)), (v, a)
 
 
+def test_an_interval_without_prior_adds_nothing():
+    """``actions: [-1, 1, 4]``: below the first threshold the head alone decides (a zero row), above it the rule."""
+    prior = ThresholdRulePrior([150.0, 185.0], [-1, 1, 4], num_actions=5, logit=5.0)
+    out = prior(torch.tensor([[120.0], [150.0], [160.0], [190.0]]), torch.zeros(4, 5))
+    want = torch.zeros(4, 5)
+    want[2, 1] = want[3, 4] = 5.0
+    assert torch.equal(out, want)
+
+
 def _spec() -> Composite:
     return Composite(hidden=Unbounded(shape=(8,)), heart_rate=Unbounded(shape=(1,)), imu=Unbounded(shape=(36,)))
 
@@ -84,8 +93,9 @@ def test_actor_with_the_prior_starts_as_the_rule_and_ppo_trains_its_head():
             ["action_prior.key=heart_rate", "action_prior.thresholds=[150]", "action_prior.actions=[0]"],
             r"actions: expected len\(thresholds\) \+ 1 = 2",
         ),
-        ([*HR_RULE[:2], "action_prior.actions=[0, -1, 4]"], r"actions: expected action indices >= 0"),
+        ([*HR_RULE[:2], "action_prior.actions=[0, -2, 4]"], r"actions: expected action indices >= 0"),
         ([*HR_RULE, "action_prior.logit=-1.0"], r"logit: expected a value >= 0"),
+        ([*HR_RULE[:2], "action_prior.actions=[-1, -1, -1]"], r"actions: expected action indices >= 0 \(or -1"),
         (["action_prior.thresholds=[150]", "action_prior.actions=[0, 1]"], r"key: thresholds/actions are set"),
     ],
 )

@@ -5,7 +5,7 @@
     action_prior:
       key: heart_rate          # one scalar observation (shape [] or [1]); null: no prior (the default)
       thresholds: [150, 185]   # ascending
-      actions: [0, 1, 4]       # Continue at or below 150, Rest above 150, Alert above 185
+      actions: [0, 1, 4]       # Continue at or below 150, Rest above 150, Alert above 185 (-1: no prior there)
       logit: 2.0               # added to the rule's action's logit
 
 The actor head's logits become ``head(h) + logit * onehot(actions[i])`` with ``i`` the number of thresholds that
@@ -35,7 +35,8 @@ __all__ = ["ActionPriorConfig", "ThresholdRulePrior", "PriorLogits", "check_acti
 class ActionPriorConfig:
     key: str | None = None  # observation key of one scalar; None: no prior
     thresholds: list[float] = field(default_factory=list)  # ascending cut points on the observation
-    actions: list[int] = field(default_factory=list)  # len(thresholds) + 1: the action below, between, above them
+    # len(thresholds) + 1: the action below, between, above them; -1: no prior in that interval (the head alone)
+    actions: list[int] = field(default_factory=list)
     logit: float = 2.0  # added to the rule's action's logit (0: the prior is off but still validated)
 
 
@@ -57,8 +58,11 @@ def check_action_prior(prior: ActionPriorConfig, section: str) -> None:
             f"{name}.actions: expected len(thresholds) + 1 = {len(prior.thresholds) + 1} actions "
             f"(below, between and above the thresholds), got {len(prior.actions)}: {prior.actions}"
         )
-    if any(not isinstance(a, int) or a < 0 for a in prior.actions):
-        raise ConfigError(f"{name}.actions: expected action indices >= 0, got {prior.actions}")
+    if any(not isinstance(a, int) or a < -1 for a in prior.actions) or max(prior.actions) < 0:
+        raise ConfigError(
+            f"{name}.actions: expected action indices >= 0 (or -1: no prior in that interval, not all), got "
+            f"{prior.actions}"
+        )
     if not prior.logit >= 0.0:
         raise ConfigError(f"{name}.logit: expected a value >= 0, got {prior.logit}")
 
@@ -83,12 +87,15 @@ def check_prior_key(prior: ActionPriorConfig, observation_spec, action_spec, sec
 
 
 class ThresholdRulePrior(nn.Module):
-    """``x [*B] or [*B, 1] -> [*B, n]``: ``logit * onehot(actions[#thresholds below x])`` (no parameters)."""
+    """``x [*B] or [*B, 1] -> [*B, n]``: ``logit * onehot(actions[#thresholds below x])`` (no parameters); an
+    interval whose action is -1 adds nothing."""
 
     def __init__(self, thresholds: list[float], actions: list[int], num_actions: int, logit: float) -> None:
         super().__init__()
+        n = int(num_actions)
         self.register_buffer("thresholds", torch.tensor(thresholds, dtype=torch.float32))
-        self.register_buffer("actions", torch.tensor(actions, dtype=torch.long))
+        # -1 (no prior) becomes an extra column n that forward drops
+        self.register_buffer("actions", torch.tensor([n if a < 0 else a for a in actions], dtype=torch.long))
         self.num_actions = int(num_actions)
         self.logit = float(logit)
 
@@ -96,7 +103,7 @@ class ThresholdRulePrior(nn.Module):
         """``like``: the head's logits ``[*B, n]`` (their batch shape, dtype and device)."""
         x = x.reshape(like.shape[:-1]).to(self.thresholds.dtype)
         bucket = torch.bucketize(x.contiguous(), self.thresholds)  # strict: x == threshold stays below it
-        onehot = nn.functional.one_hot(self.actions[bucket], self.num_actions)
+        onehot = nn.functional.one_hot(self.actions[bucket], self.num_actions + 1)[..., : self.num_actions]
         return self.logit * onehot.to(like.dtype)
 
 
