@@ -13,9 +13,8 @@ The actor head's logits become ``head(h) + logit * onehot(actions[i])`` with ``i
 initial policy takes the rule's action with probability ``e^logit / (e^logit + n - 1)`` and its mode *is* the rule
 (PyTorch's default init, ``network.init: torch_default``, starts the head at logits of a few tenths: the mode is the
 rule wherever they differ by less than ``logit``); the loss then trains the head, which can move any state away
-from the rule. The prior
-has no parameters and no host syncs; it reads the observation from the same tensordict as the head, so TorchRL's
-``ClipPPOLoss`` recomputes it unchanged. A kickstart of this kind is only as fair as its use: give it to every arm
+from the rule. The prior has no parameters and no host syncs; it reads the observation from the same tensordict as
+the head, so TorchRL's ``ClipPPOLoss`` recomputes it unchanged. A kickstart of this kind is only as fair as its use: give it to every arm
 of a comparison (the health suite ``recipes/suites/health_mf_loso.yaml`` gives it to the PPO-MLP and FreamerV1).
 """
 
@@ -96,7 +95,7 @@ class ThresholdRulePrior(nn.Module):
         self.register_buffer("thresholds", torch.tensor(thresholds, dtype=torch.float32))
         # -1 (no prior) becomes an extra column n that forward drops
         self.register_buffer("actions", torch.tensor([n if a < 0 else a for a in actions], dtype=torch.long))
-        self.num_actions = int(num_actions)
+        self.num_actions = n
         self.logit = float(logit)
 
     def forward(self, x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
