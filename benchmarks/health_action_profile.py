@@ -8,8 +8,8 @@ mlp_prior_fold108/pamap2-health-varied/seed0`` with its checkpoints). Episodes r
 (``env.eval_options`` over ``env.options``: the held-out subject), one unbatched env seeded with ``--seed``. Prints a
 table per run and writes ``action_profile.json`` in each run folder: per bucket (``<130``, ``130-150``, ``150-170``,
 ``>170`` bpm) the count of each action, the rule's on the same observations (``rule_counts``), and the mean episode
-return. The README's health section reads it for the
-claim that the prior-trained policies overrule the rule's Rest above 150 bpm on the most active subject.
+return. The README's health section reads it for its claims on the rule-prior, jitter and shield arms (who rests
+above 150 bpm on the most active subject, and what the policies do below it).
 """
 
 from __future__ import annotations
