@@ -64,7 +64,8 @@ percentile of their heart rate, ``gain`` = median of ``(HR - HR_rest) / (MET - 1
 Reset: each reset batch element draws a subject (uniformly from ``subjects``) and a start window (uniformly over
 the recording, wrapping around at its end), and with ``gain_jitter`` j > 0 a factor ``U(1 - j, 1 + j)`` on the
 subject's ``gain`` for the episode (domain randomisation for policies that must meet unseen subjects); heart rate,
-fatigue and HRV start from the recording's values there, cumulative exertion and the episode metrics from 0. ``"_reset"`` masks (``[B, 1]``) reset only those elements.
+fatigue and HRV start from the recording's values there, cumulative exertion and the episode metrics from 0.
+``"_reset"`` masks (``[B, 1]``) reset only those elements.
 
 IMU observation: the timeline's window, or (after Change) a random window of the new activity from the same subject,
 with its movement scaled by the level: ``imu = posture + sqrt(level) (window - posture)`` where ``posture`` is the

@@ -14,8 +14,9 @@ initial policy takes the rule's action with probability ``e^logit / (e^logit + n
 (PyTorch's default init, ``network.init: torch_default``, starts the head at logits of a few tenths: the mode is the
 rule wherever they differ by less than ``logit``); the loss then trains the head, which can move any state away
 from the rule. The prior has no parameters and no host syncs; it reads the observation from the same tensordict as
-the head, so TorchRL's ``ClipPPOLoss`` recomputes it unchanged. A kickstart of this kind is only as fair as its use: give it to every arm
-of a comparison (the health suite ``recipes/suites/health_mf_loso.yaml`` gives it to the PPO-MLP and FreamerV1).
+the head, so TorchRL's ``ClipPPOLoss`` recomputes it unchanged. A kickstart of this kind is only as fair as its use:
+give it to every arm of a comparison (the health suite ``recipes/suites/health_mf_loso.yaml`` gives it to the
+PPO-MLP and FreamerV1).
 """
 
 from __future__ import annotations
