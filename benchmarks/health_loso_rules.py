@@ -48,8 +48,8 @@ def _health_config(cfg, episodes: int, seed: int):
     # the references read none of the world-model or horizon-probe fields: smallest values, valid for short episodes
     overrides += ["world_model.seq_len=1", "eval.horizon_context=1", "eval.horizon_max=1"]
     overrides += [f"env.subjects={list(opts['subjects'])}", f"eval.subjects={list(held['subjects'])}"]
-    # every option the two configs share (HEALTH_OPTION_NAMES less the subjects, set above); the rule check catches
-    # any other difference
+    # every option the two configs share (HEALTH_OPTION_NAMES less the subjects, set above, and gain_jitter, which the
+    # health trainer does not take: evaluate with eval_options.gain_jitter 0); the rule check catches any difference
     shared = ("episode_length", "rate_hz", "synthetic_duration_s", "data_seed", "reward_weights", "data_dir")
     overrides += [f"env.{k}={opts[k]}" for k in shared if opts.get(k) is not None]
     return load_health_config(None, overrides)
