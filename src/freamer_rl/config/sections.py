@@ -73,6 +73,9 @@ class EnvConfig:
     # observations to keep a clean copy of, <key>_clean (same spec, written before any corruption; no policy reads
     # it unless told to): the target of FreamerV1's paired denoising (model.flow.targets=paired)
     clean_copies: list[str] = field(default_factory=list)
+    # observations whose <key>_present flag (float, 1 = present) every env of the run writes: 0 where a dropout
+    # corruption dropped the key, 1 otherwise (freamer_rl.run.corruption.PresenceFlag; model.presence_keys reads it)
+    presence: list[str] = field(default_factory=list)
     id: str = "MiniGrid-MultiRoom-N2-S4-v0"
     num_envs: int = 8
     reward_history: int = 8
@@ -244,6 +247,11 @@ def check_base(cfg: BaseConfig) -> None:
             raise ConfigError(f"env.copies.{new}: a key cannot be a copy of itself")
     if len(set(cfg.env.clean_copies)) != len(cfg.env.clean_copies):
         raise ConfigError(f"env.clean_copies: a key is named twice in {cfg.env.clean_copies}")
+    if len(set(cfg.env.presence)) != len(cfg.env.presence):
+        raise ConfigError(f"env.presence: a key is named twice in {cfg.env.presence}")
+    for key in cfg.env.presence:
+        if problem := run_name_problem(key) if key else "an empty key":
+            raise ConfigError(f"env.presence: {key!r} is no observation key name ({problem})")
     for key in cfg.env.clean_copies:
         if problem := run_name_problem(key) if key else "an empty key":
             raise ConfigError(f"env.clean_copies: {key!r} is no observation key name ({problem})")

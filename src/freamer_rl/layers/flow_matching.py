@@ -320,8 +320,9 @@ class FlowMatchingRefiner(nn.Module):
         z = (log_c - mean) / var.clamp_min(1e-6).sqrt()
         return torch.where(count > 0, z, torch.zeros_like(z))
 
-    def _observe_scores(self, e: torch.Tensor) -> None:
-        """EMA update of ``score_stats`` from the training embeddings ``e [*B, d]`` (in place, no host sync; skipped
+    def _observe_scores(self, e: torch.Tensor, mask: torch.Tensor | None = None) -> None:
+        """EMA update of ``score_stats`` from the training embeddings ``e [*B, d]``, only the rows where ``mask
+        [*B]`` is 1 if given (in place, no host sync; a batch without such rows leaves them as they were; skipped
         under ``torch.vmap``/``torch.func`` as :meth:`_record_steps` is)."""
         rows = e.detach().reshape(-1, self.dim)
         if rows.shape[0] == 0:
@@ -329,13 +330,18 @@ class FlowMatchingRefiner(nn.Module):
         log_c = torch.log(self.complexity(rows) + 1e-8)
         if is_transformed(log_c) and not torch.compiler.is_compiling():
             return
+        w = torch.ones_like(log_c) if mask is None else mask.detach().reshape(-1).to(log_c.dtype)
         with torch.no_grad():
             count, mean, var = self.score_stats.unbind()
             rate = torch.where(count > 0, torch.full_like(count, SCORE_STATS_RATE), torch.ones_like(count))
-            b_mean, b_var = log_c.mean(), log_c.var(unbiased=False)
+            rate = torch.where(w.sum() > 0, rate, torch.zeros_like(rate))  # nothing observed: keep the statistics
+            n = w.sum().clamp_min(1.0)
+            b_mean = (w * log_c).sum() / n
+            b_var = (w * (log_c - b_mean) ** 2).sum() / n
             delta = b_mean - mean
             new_var = (1 - rate) * (var + rate * delta**2) + rate * b_var
-            self.score_stats.copy_(torch.stack([count + 1, mean + rate * delta, new_var]))
+            observed = (w.sum() > 0).to(count.dtype)
+            self.score_stats.copy_(torch.stack([count + observed, mean + rate * delta, new_var]))
 
     def reliability_terms(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """``(gate [*B, 1], weight [*B, 1])`` for ``e [*B, d]``: the residual gate of Eq. 3 (input-dependent with
@@ -405,7 +411,9 @@ class FlowMatchingRefiner(nn.Module):
         gate, weight = self.reliability_terms(e)
         return weight * (e + gate * (out - e))
 
-    def cfm_loss(self, e: torch.Tensor, noise_std: float = 1.0, *, relative: bool = False) -> torch.Tensor:
+    def cfm_loss(
+        self, e: torch.Tensor, noise_std: float = 1.0, *, relative: bool = False, mask: torch.Tensor | None = None
+    ) -> torch.Tensor:
         """Denoising conditional flow matching loss (Eq. A13); see the module docstring for the exact formulation.
         With ``reliability`` on, the clean targets also update the score statistics.
 
@@ -413,22 +421,29 @@ class FlowMatchingRefiner(nn.Module):
             e: encoder embeddings ``[*B, d]`` (detached inside: only the velocity field receives gradients).
             noise_std: std ``sigma`` of the Gaussian perturbation that defines the noisy start ``x_0``.
             relative: ``sigma`` in units of each row's own std across ``d`` (module docstring, "Noise scale").
+            mask: ``[*B]`` (or ``[*B, 1]``) 1 for the rows to train on, 0 for rows to leave out (a dropped sensor's
+                embedding, ``model.presence_keys``): the loss and the score statistics see only the kept rows.
 
         Returns:
-            0-d tensor: ``mean over *B and d of (v_theta(x_t, t) - (x_1 - x_0))^2``.
+            0-d tensor: ``mean over *B and d of (v_theta(x_t, t) - (x_1 - x_0))^2`` (over the kept rows; 0 if none).
         """
         if e.shape[-1] != self.dim:
             raise ValueError(f"e must have last dim {self.dim} (the refiner's dim); got shape {tuple(e.shape)}")
         if not math.isfinite(noise_std) or noise_std < 0:
             raise ValueError(f"noise_std must be a finite non-negative float; got {noise_std}")
         x1 = e.detach()
+        if mask is not None:
+            mask = mask.detach().reshape(x1.shape[:-1]).to(x1.dtype)
         if self.reliability != "off":
-            self._observe_scores(x1)
+            self._observe_scores(x1, mask)
         scale = noise_std * x1.std(dim=-1, keepdim=True) if relative else noise_std
         x0 = x1 + scale * torch.randn_like(x1)
         t = torch.rand(x1.shape[:-1], dtype=x1.dtype, device=x1.device)
         x_t, u = cfm_interpolant(x0, x1, t)
-        return (self.velocity(x_t, t) - u).pow(2).mean()
+        err = (self.velocity(x_t, t) - u).pow(2)
+        if mask is None:
+            return err.mean()
+        return (err.mean(-1) * mask).sum() / mask.sum().clamp_min(1.0)
 
     def paired_loss(self, noisy: torch.Tensor, clean: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Denoising on observed pairs (``model.flow.targets=paired``; module docstring, "Paired targets").

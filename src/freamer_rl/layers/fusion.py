@@ -7,6 +7,9 @@ losses do not change with the choice:
 
 ``rows`` is ``E`` itself: neither mixes the modality rows, so the FNO smoothness term (Eq. A16) has nothing to act on.
 
+:class:`PresenceMask` sits in front of any fuser: ``e [*B, d] * present [*B, 1]``, so a modality whose sensor was
+dropped (``present = 0``) adds exactly nothing to the mix (``model.presence_keys``).
+
 * :class:`ConcatFuser` -- the usual late fusion of a multimodal MLP policy: ``fused = MLP([E_1; ...; E_M])``
   (``Linear(M d, h) -> GELU -> Linear(h, d)``), so every modality's entries can be weighted against each other.
 * :class:`MeanFuser` -- ``fused = mean_m E_m`` with no parameters: what the FNO fuser reduces to with ``R_k = 0``,
@@ -20,7 +23,7 @@ from torch import nn
 
 from freamer_rl.layers.checks import check_finite
 
-__all__ = ["ConcatFuser", "MeanFuser"]
+__all__ = ["ConcatFuser", "MeanFuser", "PresenceMask"]
 
 
 def _check_stack(e: torch.Tensor, num_modalities: int, dim: int, name: str) -> None:
@@ -55,3 +58,14 @@ class MeanFuser(nn.Module):
     def forward(self, e: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         _check_stack(e, self.num_modalities, self.dim, "MeanFuser")
         return e.mean(dim=-2), e
+
+
+class PresenceMask(nn.Module):
+    """``(e [*B, d], present [*B, 1]) -> e * present``: a dropped modality's row of the fuser's input is zero."""
+
+    def forward(self, e: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+        if present.shape != (*e.shape[:-1], 1):
+            raise ValueError(
+                f"PresenceMask: the flag must be [*B, 1] for an embedding {tuple(e.shape)}; got {tuple(present.shape)}"
+            )
+        return e * present.to(e.dtype)

@@ -65,6 +65,11 @@ def check_model_names(model: Any) -> None:
             raise ConfigError(f"model.observation_keys.{m}: give at least one observation key")
     if len(set(mods)) != len(mods):
         raise ConfigError(f"model.modalities: duplicates in {mods}")
+    for m, key in model.presence_keys.items():
+        if m not in mods:
+            raise ConfigError(f"model.presence_keys: '{m}' is not one of model.modalities {mods}")
+        if not isinstance(key, str) or not key:
+            raise ConfigError(f"model.presence_keys.{m}: give the observation key of its flag, e.g. grid_present")
     check_action_prior(model.action_prior, "model")
     for m in model.freeze_encoders:
         if m not in mods:

@@ -116,6 +116,10 @@ class ModelConfig:
     # Layer 3: fno (spectral fusion, the paper's), concat (concatenation + MLP to embed_dim), mean (no parameters)
     fusion: str = "fno"
     fusion_hidden: int | None = None  # width of the concat MLP (None: embed_dim); set it to match parameter counts
+    # {modality: observation key} of a presence flag (env.presence writes <key>_present: 1 present, 0 dropped) that
+    # multiplies the modality's row of the fuser's input, so a dropped modality adds exactly nothing to the mix and its
+    # rows are left out of its refiner's FM loss and score statistics (README "Robustness", presence-aware fusion)
+    presence_keys: dict[str, str] = field(default_factory=dict)
     cross_modal_heads: int = 4
     head_hidden: int = 128
     # what the value head's gradient reaches: shared (the paper's: the critic loss trains the trunk with the actor)

@@ -37,7 +37,7 @@ from freamer_rl.layers.dnc import DNCModule
 from freamer_rl.layers.encoders import CrossModalAttention, SlotPool
 from freamer_rl.layers.flow_matching import FlowMatchingRefiner
 from freamer_rl.layers.fno import FNOFuser
-from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
+from freamer_rl.layers.fusion import ConcatFuser, MeanFuser, PresenceMask
 from freamer_rl.layers.tdmodule import KeyedModule
 from freamer_rl.model.action_prior import check_prior_key
 from freamer_rl.model.config import ModelConfig
@@ -150,6 +150,7 @@ def build_freamer(
     modalities = list(cfg.modalities)
     check_observation_keys(observation_spec, cfg, env_name)
     action_kind(action_spec)  # fail on an action spec without a head before building anything
+    _check_presence_keys(observation_spec, cfg.presence_keys, env_name)
     d = cfg.embed_dim
     steps: list[nn.Module] = _layer1_encoders(observation_spec, cfg)
     encoders = TensorDictSequential(*steps)
@@ -169,6 +170,7 @@ def build_freamer(
             "fused": cfg.flow.gate_init.get("fused", FUSED_GATE_INIT),
         },
         placement=cfg.flow.placement,
+        presence_keys=cfg.presence_keys,
         fusion=cfg.fusion,
         fusion_hidden=cfg.fusion_hidden,
         fno_modes=cfg.fno.modes,
@@ -213,6 +215,7 @@ def build_filter_mix_memory(
     reliability: str = "off",
     reliability_margin: float = 2.0,
     placement: str = "pre",
+    presence_keys: Mapping[str, NestedKey] | None = None,
     fusion: str = "fno",
     fusion_hidden: int | None = None,
     fno_modes: int,
@@ -239,6 +242,10 @@ def build_filter_mix_memory(
         "modal_stack"  -> FNOFuser             -> "fused", "fused_modalities"  [*B, d], [*B, M, d]  Eq. A14-A15
         "fused"        -> DNCModule            -> out_key [*B, D_out], ("next", *memory_key) [*B, N, W]  App. F.1
                           (``dnc=False``: Linear(d, D_out) -> GELU, stateless)
+
+    ``presence_keys`` ``{m: key}``: modality ``m``'s row is multiplied by the flag ``key [*B, 1]``
+    (:class:`~freamer_rl.layers.fusion.PresenceMask`, written to ``("masked", m)`` and stacked from there), so a
+    dropped sensor adds nothing to the mix.
 
     ``placement="post"`` stacks the raw ``("embed", m)``, the fuser writes ``("embed", "fused")`` and one refiner
     (``refiners["fused"]``) turns it into ``"fused"``: refinement after mixing, the comparison the paper names as
@@ -301,6 +308,14 @@ def build_filter_mix_memory(
     stack_in = [("refined", m) for m in modalities] if placement == "pre" else [("embed", m) for m in modalities]
     for m in modalities if placement == "pre" else []:
         steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
+    presence = dict(presence_keys or {})
+    unknown = sorted(set(presence) - set(modalities))
+    if unknown:
+        raise ValueError(f"presence_keys: {unknown} are not among the modalities {list(modalities)}")
+    for i, m in enumerate(modalities):
+        if m in presence:  # a dropped sensor's row enters the fuser as zeros
+            steps.append(KeyedModule(PresenceMask(), in_keys=[stack_in[i], presence[m]], out_keys=[("masked", m)]))
+            stack_in[i] = ("masked", m)
     steps.append(KeyedModule(StackModalities(), in_keys=stack_in, out_keys=["modal_stack"]))
     fuser = _build_fuser(fusion, len(modalities), dim, fno_modes, fno_residual_scale, fno_output_norm, fusion_hidden)
     fused_key = ("embed", "fused") if placement == "post" else "fused"
@@ -322,6 +337,20 @@ def build_filter_mix_memory(
     )
     steps.append(memory if memory is not None else _projection(dim, d_out, out_key))
     return steps, refiners, fuser, memory
+
+
+def _check_presence_keys(observation_spec: Composite, presence_keys: Mapping[str, str], env_name: str) -> None:
+    """Each ``model.presence_keys`` flag is an observation ``[1]`` of the env (``env.presence`` writes them)."""
+    keys = observation_spec.keys(True)
+    for m, key in presence_keys.items():
+        if key not in keys:
+            raise EnvSetupError(
+                f"model.presence_keys.{m}: {env_name} has no observation {key!r} (env.presence: [<key>] writes "
+                "<key>_present in every phase)"
+            )
+        shape = tuple(observation_spec[key].shape)
+        if shape != (1,):
+            raise EnvSetupError(f"model.presence_keys.{m}: {key!r} has shape {shape}; a presence flag is [1]")
 
 
 def _layer4(

@@ -79,6 +79,9 @@ class FreamerAuxLoss(LossModule):
         encoders: Layer 1 alone (``FreamerModules.encoders``), run without gradients on the clean copies.
         modalities: the model's modalities (default: the refiners' keys); the contrastive term needs vision and
             language among them.
+        presence_keys: ``{modality: flag key [*B, 1]}`` (``model.presence_keys``): a refiner's synthetic CFM term
+            and score statistics leave out the rows whose flag is 0 (a dropped sensor's embedding is no sample of
+            what the modality looks like).
 
     Returns (forward): a TensorDict with the weighted scalars ``loss_fm``, ``loss_cl``, ``loss_smooth`` (each only when
     its weight is non-zero and its inputs exist) and detached per-modality diagnostics ``fm_<modality>`` (with
@@ -110,6 +113,7 @@ class FreamerAuxLoss(LossModule):
         clean_keys: Mapping[NestedKey, NestedKey] | None = None,
         encoders: nn.Module | None = None,
         paired_modalities: Sequence[str] | None = None,
+        presence_keys: Mapping[str, NestedKey] | None = None,
     ) -> None:
         super().__init__()
         self.refiners = refiners
@@ -124,6 +128,7 @@ class FreamerAuxLoss(LossModule):
         # the contrastive pair is read from the Layer-1 embeddings, refined or not (model.flow.placement)
         self.modalities = list(refiners) if modalities is None else list(modalities)
         self.clean_keys = dict(clean_keys or {})
+        self.presence_keys = {m: k for m, k in (presence_keys or {}).items() if m in refiners}
         if self.clean_keys and encoders is None:
             raise ValueError("FreamerAuxLoss: clean_keys needs encoders= (Layer 1, FreamerModules.encoders)")
         self.paired = set(refiners) if paired_modalities is None else set(paired_modalities)
@@ -145,7 +150,7 @@ class FreamerAuxLoss(LossModule):
         keys = self.tensor_keys
         out = [(*_as_tuple(keys.embed), m) for m in self.refiners]
         out.append(keys.modal_stack if self.smooth_fuser is not None else keys.fused_modalities)
-        return out + list(self.clean_keys.values())
+        return out + list(self.clean_keys.values()) + list(self.presence_keys.values())
 
     def _embed(self, td: TensorDictBase, m: str) -> torch.Tensor:
         return self._get(td, (*_as_tuple(self.tensor_keys.embed), m))
@@ -168,12 +173,14 @@ class FreamerAuxLoss(LossModule):
         terms = {}
         for m, r in self.refiners.items():
             e = self._embed(td, m)
+            mask = self._get(td, self.presence_keys[m]) if m in self.presence_keys else None
             if clean is None or m not in self.paired:
-                terms[m] = r.cfm_loss(e, noise_std=self.noise_std, relative=self.relative_noise)
+                terms[m] = r.cfm_loss(e, noise_std=self.noise_std, relative=self.relative_noise, mask=mask)
                 continue
             target = clean.get((*_as_tuple(self.tensor_keys.embed), m))
             paired, out[f"fm_left_{m}"] = r.paired_loss(e, target)
-            terms[m] = 0.5 * (r.cfm_loss(target, noise_std=self.noise_std, relative=self.relative_noise) + paired)
+            synthetic = r.cfm_loss(target, noise_std=self.noise_std, relative=self.relative_noise, mask=mask)
+            terms[m] = 0.5 * (synthetic + paired)
         return terms
 
     def _clean_embeddings(self, td: TensorDictBase) -> TensorDictBase:

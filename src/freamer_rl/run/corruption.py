@@ -45,12 +45,14 @@ from freamer_rl.errors import ConfigError
 
 __all__ = [
     "ModalityCorruption",
+    "PresenceFlag",
     "SensorCopy",
     "corruption_transforms",
     "copy_transforms",
     "eval_entries",
     "env_corruption_state",
     "load_corruption_state",
+    "presence_transforms",
 ]
 
 logger = logging.getLogger(__name__)
@@ -287,6 +289,48 @@ class SensorCopy(Transform):
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         return self._call(tensordict_reset)
+
+
+class PresenceFlag(Transform):
+    """``<key>_present`` (float ``[*B, 1]``) in every phase, 1 where nothing wrote it (``env.presence: [key]``).
+
+    A ``dropout`` corruption of ``key`` writes the flag itself (0 where it dropped the key) and this transform, placed
+    after the corruptions, leaves that value alone; without one (a clean evaluation, a Gaussian or salt corruption)
+    the flag reads 1. So a policy that reads the flag (FreamerV1's ``model.presence_keys``, a baseline's
+    ``network.observation_keys``) finds it in every env of the run, trained with dropout or not."""
+
+    def __init__(self, key: str) -> None:
+        self.key, self.flag = key, f"{key}_present"
+        super().__init__(in_keys=[], out_keys=[self.flag])
+
+    def transform_observation_spec(self, observation_spec):
+        keys = observation_spec.keys(True)
+        if self.key not in keys:
+            known = ", ".join(str(k) for k in observation_spec.keys(True, True))
+            raise ConfigError(f"env.presence: the env has no observation {self.key!r} (it has {known})")
+        if self.flag not in keys:
+            batch = observation_spec.shape
+            observation_spec[self.flag] = Unbounded((*batch, 1), device=observation_spec.device, dtype=torch.float32)
+        return observation_spec
+
+    def _flag(self, td: TensorDictBase) -> TensorDictBase:
+        if td.get(self.flag, None) is None:
+            td.set(self.flag, torch.ones((*td.batch_size, 1), dtype=torch.float32, device=td.device))
+        return td
+
+    def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
+        return self._flag(next_tensordict)
+
+    def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
+        return self._flag(tensordict_reset)
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        return self._flag(tensordict)
+
+
+def presence_transforms(keys) -> list[PresenceFlag]:
+    """The ``env.presence`` flags, to be placed after every corruption of the env."""
+    return [PresenceFlag(k) for k in keys]
 
 
 def copy_transforms(copies: dict[str, str], clean_copies: list[str] | tuple[str, ...] = ()) -> list[SensorCopy]:

@@ -20,7 +20,7 @@ from torchrl.envs import Compose, EnvBase, InitTracker, RewardSum, SerialEnv, St
 
 from freamer_rl.errors import ConfigError
 from freamer_rl.run import env_registry
-from freamer_rl.run.corruption import copy_transforms
+from freamer_rl.run.corruption import copy_transforms, presence_transforms
 
 __all__ = [
     "ENV_WRITTEN",
@@ -126,6 +126,7 @@ def make_single_env(cfg: Any, seed: int | None = None) -> EnvBase:
     import_env_modules(cfg.env)
     env = env_registry.make_env(cfg.env.adapter, cfg.env.id, seed=seed, **env_options(cfg))
     copies = copy_transforms(getattr(cfg.env, "copies", {}), getattr(cfg.env, "clean_copies", ()))
+    copies += presence_transforms(getattr(cfg.env, "presence", ()))
     return TransformedEnv(env, Compose(*copies)) if copies else env
 
 
@@ -137,8 +138,8 @@ def _single_env_fn(adapter: str, env_id: str, options: dict, imports: tuple[str,
 def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None = None) -> EnvBase:
     """``num_envs`` (default ``env.num_envs``) copies in one process (2 cores do not profit from ParallelEnv): the
     adapter's own batched env when it has one (``EnvAdapter.make_batched_env``), else a SerialEnv of single envs;
-    then the ``env.copies`` sensors, InitTracker, StepCounter, RewardSum and copies of ``transforms`` (after
-    RewardSum, so episode returns stay the env's own)."""
+    then the ``env.copies`` sensors, InitTracker, StepCounter, RewardSum, copies of ``transforms`` (after
+    RewardSum, so episode returns stay the env's own) and the ``env.presence`` flags (after any corruption)."""
     import_env_modules(cfg.env)
     n = num_envs or cfg.env.num_envs
     adapter = env_registry.get_adapter(cfg.env.adapter)
@@ -149,7 +150,15 @@ def make_batched_env(cfg: Any, transforms: list, seed: int, num_envs: int | None
         base = SerialEnv(n, make)
     copies = copy_transforms(getattr(cfg.env, "copies", {}), getattr(cfg.env, "clean_copies", ()))
     env = TransformedEnv(
-        base, Compose(*copies, InitTracker(), StepCounter(), RewardSum(), *[t.clone() for t in transforms])
+        base,
+        Compose(
+            *copies,
+            InitTracker(),
+            StepCounter(),
+            RewardSum(),
+            *[t.clone() for t in transforms],
+            *presence_transforms(getattr(cfg.env, "presence", ())),
+        ),
     )
     env.set_seed(seed)
     return env

@@ -228,6 +228,7 @@ class Trainer(RunLoop):
             paired_modalities=paired_modalities(
                 self.modules.modalities, cfg.env.clean_copies, cfg.model.observation_keys
             ),
+            presence_keys=cfg.model.presence_keys,
         ).to(self.device)
         # built once: a new buffer per batch costs time and logs TorchRL's storage INFO line every batch
         self._sequence_buffer = sequence_replay_buffer(
