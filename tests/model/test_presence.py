@@ -16,7 +16,7 @@ from freamer_rl.layers.fusion import PresenceMask
 from freamer_rl.run.corruption import ModalityCorruption, PresenceFlag
 from freamer_rl.run.envs import make_batched_env
 from freamer_rl.trainers.minigrid_ppo import build_modules, evaluate, train
-from freamer_rl.trainers.registry import TRAINERS, load_config
+from freamer_rl.trainers.registry import load_config
 from freamer_rl_envs.minigrid import make_minigrid_env
 
 TINY = Path(__file__).resolve().parents[2] / "recipes" / "tiny.yaml"
@@ -131,23 +131,3 @@ def test_trains_with_dropped_sensors_and_evaluates_under_salt(tmp_path):
     salted = evaluate(ckpt, episodes=2, corrupt=[CorruptionConfig("grid", "salt", 0.5, "eval")])
     assert clean["episodes"] == salted["episodes"] == 2
     assert 0 < salted["weight_state"] <= 1 and clean["weight_state"] > 0
-
-
-def test_a_baseline_reads_the_flags_as_observations(tmp_path):
-    recipe = TINY.parent / "baselines" / "ppo_mlp_n2s4.yaml"
-    overrides = [
-        "env.id=MiniGrid-Empty-5x5-v0",
-        "env.num_envs=2",
-        "ppo.frames_per_batch=64",
-        "ppo.minibatch_size=32",
-        "network.hidden=16",
-        "run.total_frames=64",
-        "logging.progress_bar=false",
-        "env.presence=[grid]",
-        "env.corrupt=[{key: grid, kind: dropout, level: 0.5, when: train}]",
-        "network.observation_keys=[grid, direction, grid_present]",
-    ]
-    spec = TRAINERS["ppo_baseline"]
-    spec.train(load_config(recipe, overrides), tmp_path / "run")
-    ckpt = sorted((tmp_path / "run" / "checkpoints").glob("checkpoint_*.pt"))[-1]
-    assert spec.evaluate(ckpt, episodes=2, corrupt=[])["episodes"] == 2  # no dropout: the flag reads 1

@@ -18,6 +18,17 @@ from freamer_rl_envs.minigrid import make_minigrid_env
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY = ROOT / "recipes" / "tiny.yaml"
+PPO_MLP = ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml"
+#: the PPO-MLP recipe at a size that trains in seconds
+TINY_PPO_MLP = [
+    "env.id=MiniGrid-Empty-5x5-v0",
+    "env.num_envs=2",
+    "ppo.frames_per_batch=64",
+    "ppo.minibatch_size=32",
+    "network.hidden=16",
+    "run.total_frames=64",
+    "logging.progress_bar=false",
+]
 
 
 def _env(*transforms, pixels=False):
@@ -136,19 +147,7 @@ def test_phases_pick_their_entries():
     "trainer, recipe, tiny",
     [
         ("minigrid_ppo", TINY, ["run.total_frames=128"]),
-        (
-            "ppo_baseline",
-            ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml",
-            [
-                "env.id=MiniGrid-Empty-5x5-v0",
-                "env.num_envs=2",
-                "ppo.frames_per_batch=64",
-                "ppo.minibatch_size=32",
-                "network.hidden=16",
-                "run.total_frames=64",
-                "logging.progress_bar=false",
-            ],
-        ),
+        ("ppo_baseline", PPO_MLP, TINY_PPO_MLP),
     ],
 )
 def test_trains_corrupted_and_evaluates_corrupted(trainer, recipe, tiny, tmp_path):
@@ -161,6 +160,20 @@ def test_trains_corrupted_and_evaluates_corrupted(trainer, recipe, tiny, tmp_pat
     assert clean["corrupt"] == [] and dropped["corrupt"][0]["kind"] == "dropout"
     noisy = spec.evaluate(ckpt, episodes=2, corrupt=[CorruptionConfig("grid", "salt", 0.5, "eval")])
     assert noisy["corrupt"][0]["level"] == 0.5
+
+
+def test_a_baseline_reads_presence_flags_as_observations(tmp_path):
+    """``env.presence`` flags among a baseline's inputs (robustness_presence.yaml's PPO-MLP arm)."""
+    overrides = [
+        *TINY_PPO_MLP,
+        "env.presence=[grid]",
+        "env.corrupt=[{key: grid, kind: dropout, level: 0.5, when: train}]",
+        "network.observation_keys=[grid, direction, grid_present]",
+    ]
+    spec = TRAINERS["ppo_baseline"]
+    spec.train(load_config(PPO_MLP, overrides), tmp_path / "run")
+    ckpt = sorted((tmp_path / "run" / "checkpoints").glob("checkpoint_*.pt"))[-1]
+    assert spec.evaluate(ckpt, episodes=2, corrupt=[])["episodes"] == 2  # no dropout: the flag reads 1
 
 
 def test_freamer_eval_reports_gates_and_refiner_displacement(tmp_path):
