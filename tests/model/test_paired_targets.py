@@ -171,6 +171,24 @@ def test_paired_settings_the_run_cannot_honour_are_one_line(overrides, message):
         load_config(TINY, overrides)
 
 
+def test_aux_loss_leaves_dropped_rows_out_of_the_pairs():
+    cfg, modules, mb = _paired_minibatch()
+    aux = FreamerAuxLoss(
+        modules.refiners,
+        clean_keys={"grid": "grid_clean"},
+        encoders=modules.encoders,
+        paired_modalities=["state"],
+        presence_keys={"state": "grid_present"},
+    )
+    with set_recurrent_mode(True):
+        mb = modules.trunk(mb)
+    flags = torch.ones(*mb.batch_size, 1)
+    assert aux(mb.set("grid_present", flags))["fm_left_state"].item() > 0.9
+    # every grid dropped: neither the synthetic nor the paired term has a row to train on
+    out = aux(mb.set("grid_present", torch.zeros_like(flags)))
+    assert out["fm_left_state"].item() == 0.0 and out["fm_state"].item() == 0.0
+
+
 def test_a_policy_reading_the_clean_copy_is_refused():
     recipe = ROOT / "recipes" / "baselines" / "ppo_mlp_n2s4.yaml"
     with pytest.raises(ConfigError, match="env.clean_copies: the model reads 'grid_clean'"):

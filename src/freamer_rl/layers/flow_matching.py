@@ -445,34 +445,44 @@ class FlowMatchingRefiner(nn.Module):
             return err.mean()
         return (err.mean(-1) * mask).sum() / mask.sum().clamp_min(1.0)
 
-    def paired_loss(self, noisy: torch.Tensor, clean: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def paired_loss(
+        self, noisy: torch.Tensor, clean: torch.Tensor, *, mask: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Denoising on observed pairs (``model.flow.targets=paired``; module docstring, "Paired targets").
 
         Args:
             noisy: embeddings of corrupted observations ``[*B, d]``.
             clean: embeddings of the same observations uncorrupted ``[*B, d]`` (both detached inside: neither
                 encoder pass is trained here).
+            mask: ``[*B]`` (or ``[*B, 1]``) 1 for the rows to train on, 0 for rows to leave out (a dropped sensor's
+                embedding, ``model.presence_keys``: the fuser never sees it, so nothing should be learned from it).
 
         Returns:
             ``(loss, left)``, 0-d tensors: ``loss = CFM(noisy -> clean) + mean((e_hat(noisy) - clean)^2)``, the
             conditional flow matching term of Eq. A13 with ``x_0 = noisy``, ``x_1 = clean`` plus the refined output's
             error (which trains the gate, and the flow through its Euler steps); ``left`` (detached) is the share
             of the corruption the refined embedding still carries, ``sum ||e_hat - clean||^2 / sum ||noisy -
-            clean||^2`` over the rows (1: nothing removed, 0: all of it; 0 when no row was corrupted).
+            clean||^2`` over the rows (1: nothing removed, 0: all of it; 0 when no row was corrupted). With
+            ``mask``, both means and ``left`` run over the kept rows only (a loss of 0 when none is kept).
         """
         if noisy.shape != clean.shape or noisy.shape[-1] != self.dim:
             raise ValueError(
                 f"noisy and clean must both be [*B, {self.dim}]; got {tuple(noisy.shape)} and {tuple(clean.shape)}"
             )
         x0, x1 = noisy.detach(), clean.detach()
+        keep = torch.ones(x1.shape[:-1], dtype=x1.dtype, device=x1.device)
+        if mask is not None:
+            keep = mask.detach().reshape(x1.shape[:-1]).to(x1.dtype)
+        kept = keep.sum().clamp_min(1.0)
         t = torch.rand(x1.shape[:-1], dtype=x1.dtype, device=x1.device)
         x_t, u = cfm_interpolant(x0, x1, t)
-        flow_term = (self.velocity(x_t, t) - u).pow(2).mean()
+        flow_term = ((self.velocity(x_t, t) - u).pow(2).mean(-1) * keep).sum() / kept
         refined = self(x0)
-        output_term = (refined - x1).pow(2).mean()
+        output_term = ((refined - x1).pow(2).mean(-1) * keep).sum() / kept
         with torch.no_grad():
-            before = (x0 - x1).pow(2).sum()
-            left = torch.where(before > 0, (refined - x1).pow(2).sum() / before.clamp_min(1e-12), before)
+            before = ((x0 - x1).pow(2).sum(-1) * keep).sum()
+            after = ((refined - x1).pow(2).sum(-1) * keep).sum()
+            left = torch.where(before > 0, after / before.clamp_min(1e-12), before)
         return flow_term + output_term, left
 
     def extra_repr(self) -> str:

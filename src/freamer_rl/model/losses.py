@@ -79,9 +79,9 @@ class FreamerAuxLoss(LossModule):
         encoders: Layer 1 alone (``FreamerModules.encoders``), run without gradients on the clean copies.
         modalities: the model's modalities (default: the refiners' keys); the contrastive term needs vision and
             language among them.
-        presence_keys: ``{modality: flag key [*B, 1]}`` (``model.presence_keys``): a refiner's synthetic CFM term
-            and score statistics leave out the rows whose flag is 0 (a dropped sensor's embedding is no sample of
-            what the modality looks like).
+        presence_keys: ``{modality: flag key [*B, 1]}`` (``model.presence_keys``): a refiner's synthetic CFM term,
+            its paired term and its score statistics leave out the rows whose flag is 0 (a dropped sensor's
+            embedding is no sample of what the modality looks like, and the fuser never sees it).
 
     Returns (forward): a TensorDict with the weighted scalars ``loss_fm``, ``loss_cl``, ``loss_smooth`` (each only when
     its weight is non-zero and its inputs exist) and detached per-modality diagnostics ``fm_<modality>`` (with
@@ -178,7 +178,7 @@ class FreamerAuxLoss(LossModule):
                 terms[m] = r.cfm_loss(e, noise_std=self.noise_std, relative=self.relative_noise, mask=mask)
                 continue
             target = clean.get((*_as_tuple(self.tensor_keys.embed), m))
-            paired, out[f"fm_left_{m}"] = r.paired_loss(e, target)
+            paired, out[f"fm_left_{m}"] = r.paired_loss(e, target, mask=mask)
             synthetic = r.cfm_loss(target, noise_std=self.noise_std, relative=self.relative_noise, mask=mask)
             terms[m] = 0.5 * (synthetic + paired)
         return terms
