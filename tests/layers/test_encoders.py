@@ -49,6 +49,19 @@ def test_reward_encoder_shapes_and_grads(batch):
     _assert_all_grads(enc)
 
 
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_reward_encoder_symlog_squashes_the_rewards_before_the_conv(batch):
+    torch.manual_seed(0)
+    plain = RewardEncoder(history=8, out_dim=D, channels=4)
+    squashed = RewardEncoder(history=8, out_dim=D, channels=4, symlog=True)
+    squashed.load_state_dict(plain.state_dict())  # no new parameters: the same weights fit both
+    r = -16 * torch.rand(*batch, 8)  # Pendulum's reward range
+    torch.testing.assert_close(squashed(r), plain(torch.sign(r) * torch.log1p(r.abs())))
+    torch.testing.assert_close(squashed(torch.zeros(*batch, 8)), plain(torch.zeros(*batch, 8)))  # symlog(0) = 0
+    assert squashed(r).abs().max() < plain(r).abs().max()  # 16 -> 2.8: the embedding no longer grows with |r|
+    torch.testing.assert_close(torch.vmap(squashed)(r.reshape(-1, 8)), squashed(r).reshape(-1, D))
+
+
 def test_reward_encoder_checks_history():
     with pytest.raises(ValueError, match=r"\[\*B, 8\]"):
         RewardEncoder(history=8, out_dim=D)(torch.randn(2, 5))

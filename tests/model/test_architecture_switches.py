@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from freamer_rl.errors import CheckpointError, ConfigError
+from freamer_rl.layers.encoders import RewardEncoder
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.model.losses import FreamerAuxLoss
@@ -54,6 +55,17 @@ def test_mean_fusion_is_the_mean_of_the_stacked_rows():
     torch.testing.assert_close(data["fused"], data["modal_stack"].mean(-2))
     stacked = torch.stack([data["embed", m] for m in cfg.model.modalities], dim=-2)
     torch.testing.assert_close(data["modal_stack"], stacked)  # placement off: the raw embeddings are mixed
+
+
+def test_reward_symlog_reaches_the_reward_encoder():
+    def reward_encoder(overrides):
+        modules = build_modules(load_config(TINY, overrides))
+        return next(m for m in modules.encoders.modules() if isinstance(m, RewardEncoder))
+
+    assert reward_encoder(["model.reward.symlog=true"]).symlog
+    assert not reward_encoder([]).symlog  # the default keeps the published runs' maths
+    with pytest.raises(ConfigError, match="model.reward.symlog: expected bool"):
+        load_config(TINY, ["model.reward.symlog=maybe"])
 
 
 def test_fm_loss_follows_the_refiners():

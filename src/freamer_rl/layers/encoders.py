@@ -78,12 +78,14 @@ class RewardEncoder(nn.Module):
     """Temporal Conv1D reward encoder (Appendix E.2: ``e_reward = ReLU(Conv1D(r_{t-H:t}))``, then a linear map to d).
 
     ``[*B, H]`` reward history (most recent last) -> Conv1d(1 -> channels, kernel, 'same' padding) -> ReLU ->
-    flatten ``[*B, channels * H]`` -> Linear -> ``[*B, out_dim]``.
+    flatten ``[*B, channels * H]`` -> Linear -> ``[*B, out_dim]``. With ``symlog``, the rewards first pass through
+    ``sign(r) log(1 + |r|)`` (DreamerV3's squashing; not in the paper): an env's raw reward scale (Pendulum's -16..0)
+    otherwise sets the size of this embedding against the other modalities' normalised ones.
 
     A NaN/Inf reward raises ``ValueError`` in eager mode (skipped, same maths, under vmap/compile).
     """
 
-    def __init__(self, history: int, out_dim: int, channels: int = 16, kernel: int = 3) -> None:
+    def __init__(self, history: int, out_dim: int, channels: int = 16, kernel: int = 3, symlog: bool = False) -> None:
         super().__init__()
         if history < 1:
             raise ValueError(f"history must be >= 1, got {history}")
@@ -91,6 +93,7 @@ class RewardEncoder(nn.Module):
             raise ValueError(f"kernel must be >= 1, got {kernel}")
         self.history = history
         self.out_dim = out_dim
+        self.symlog = bool(symlog)
         self.conv = nn.Conv1d(1, channels, kernel_size=kernel, padding="same")
         self.proj = nn.Linear(channels * history, out_dim)
 
@@ -106,6 +109,8 @@ class RewardEncoder(nn.Module):
 
     def _encode(self, x: torch.Tensor) -> torch.Tensor:
         """``x [b, H]`` -> ``[b, out_dim]``."""
+        if self.symlog:
+            x = torch.sign(x) * torch.log1p(x.abs())
         h = F.relu(self.conv(x.unsqueeze(1))).flatten(1)
         return self.proj(h)
 

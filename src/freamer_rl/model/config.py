@@ -38,6 +38,9 @@ class StateConfig:
 class RewardConfig:
     channels: int = 16
     kernel: int = 3
+    # symlog the reward history before the Conv1D (layers/encoders.py RewardEncoder): raw rewards of large scale
+    # (Pendulum's -16..0) otherwise make this modality's embedding outweigh the others in the fuser
+    symlog: bool = False
 
 
 @dataclass

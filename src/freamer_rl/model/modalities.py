@@ -130,6 +130,7 @@ def _reward_encoder(ctx: EncoderContext) -> nn.Module:
         out_dim=ctx.cfg.embed_dim,
         channels=ctx.cfg.reward.channels,
         kernel=ctx.cfg.reward.kernel,
+        symlog=ctx.cfg.reward.symlog,
     )
 
 
