@@ -40,12 +40,17 @@ class _StillRefiner(FlowMatchingRefiner):
         return super().velocity(x, t) * 0
 
 
+def _noisy_pairs(batch, dim):
+    """(noisy, clean) ``[*batch, dim]``: clean rows and the same rows plus unit Gaussian noise."""
+    clean = torch.randn(*batch, dim)
+    return clean + torch.randn(*batch, dim), clean
+
+
 @pytest.mark.parametrize("batch", [(5,), (2, 3)])
 def test_paired_loss_closed_form(batch):
     torch.manual_seed(0)
     ref = _StillRefiner(6, hidden=8)
-    clean = torch.randn(*batch, 6)
-    noisy = clean + torch.randn(*batch, 6)
+    noisy, clean = _noisy_pairs(batch, 6)
     loss, left = ref.paired_loss(noisy, clean)
     # flow term: v = 0 against u = clean - noisy; output term: e_hat = noisy
     expected = 2 * (clean - noisy).pow(2).mean()
@@ -56,6 +61,33 @@ def test_paired_loss_closed_form(batch):
     assert none_corrupted.item() == 0.0
     with pytest.raises(ValueError, match=r"noisy and clean must both be \[\*B, 6\]"):
         ref.paired_loss(noisy[..., :5], clean[..., :5])
+
+
+@pytest.mark.parametrize("batch", [(12,), (3, 4)])
+def test_dropped_rows_leave_the_paired_loss(batch):
+    torch.manual_seed(0)
+    ref = FlowMatchingRefiner(8, hidden=16)
+    noisy, clean = _noisy_pairs(batch, 8)
+    mask = (torch.arange(12) % 3 != 0).float().reshape(batch)
+    # the dropped rows' embeddings (of an all-zero observation) differ; the kept rows do not
+    other = torch.where(mask.bool().unsqueeze(-1), noisy, 100 * torch.randn(*batch, 8))
+    results = []
+    for x in (noisy, other):
+        torch.manual_seed(1)
+        results.append(ref.paired_loss(x, clean, mask=mask))
+    torch.testing.assert_close(results[0], results[1])
+    torch.manual_seed(1)
+    t = torch.rand(batch)  # the kept rows' loss equals the unmasked loss on the kept rows alone (same t draws)
+    kept = mask.bool()
+    with torch.no_grad():
+        x_t = (1 - t[kept]).unsqueeze(-1) * noisy[kept] + t[kept].unsqueeze(-1) * clean[kept]
+        flow = (ref.velocity(x_t, t[kept]) - (clean[kept] - noisy[kept])).pow(2).mean()
+        out = (ref(noisy[kept]) - clean[kept]).pow(2).mean()
+        left = (ref(noisy[kept]) - clean[kept]).pow(2).sum() / (noisy[kept] - clean[kept]).pow(2).sum()
+    torch.testing.assert_close(results[0][0], flow + out)
+    torch.testing.assert_close(results[0][1], left)
+    nothing, nothing_left = ref.paired_loss(noisy, clean, mask=torch.zeros(batch))
+    assert nothing.item() == 0.0 and nothing_left.item() == 0.0
 
 
 def _embedding_pairs(w: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -104,34 +104,6 @@ def test_dropped_rows_leave_the_fm_loss_and_the_score_statistics():
     torch.testing.assert_close(refs[0].score_stats, before)
 
 
-@pytest.mark.parametrize("batch", [(12,), (3, 4)])
-def test_dropped_rows_leave_the_paired_loss(batch):
-    torch.manual_seed(0)
-    ref = FlowMatchingRefiner(8, hidden=16)
-    clean = torch.randn(*batch, 8)
-    noisy = clean + torch.randn(*batch, 8)
-    mask = (torch.arange(12) % 3 != 0).float().reshape(batch)
-    # the dropped rows' embeddings (of an all-zero observation) differ; the kept rows do not
-    other = torch.where(mask.bool().unsqueeze(-1), noisy, 100 * torch.randn(*batch, 8))
-    results = []
-    for x in (noisy, other):
-        torch.manual_seed(1)
-        results.append(ref.paired_loss(x, clean, mask=mask))
-    torch.testing.assert_close(results[0], results[1])
-    torch.manual_seed(1)
-    t = torch.rand(batch)  # the kept rows' loss equals the unmasked loss on the kept rows alone (same t draws)
-    kept = mask.bool()
-    with torch.no_grad():
-        x_t = (1 - t[kept]).unsqueeze(-1) * noisy[kept] + t[kept].unsqueeze(-1) * clean[kept]
-        flow = (ref.velocity(x_t, t[kept]) - (clean[kept] - noisy[kept])).pow(2).mean()
-        out = (ref(noisy[kept]) - clean[kept]).pow(2).mean()
-        left = (ref(noisy[kept]) - clean[kept]).pow(2).sum() / (noisy[kept] - clean[kept]).pow(2).sum()
-    torch.testing.assert_close(results[0][0], flow + out)
-    torch.testing.assert_close(results[0][1], left)
-    nothing, nothing_left = ref.paired_loss(noisy, clean, mask=torch.zeros(batch))
-    assert nothing.item() == 0.0 and nothing_left.item() == 0.0
-
-
 @pytest.mark.parametrize(
     "overrides, error, message",
     [
