@@ -26,6 +26,7 @@ import math
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torchrl.modules.functional import symlog
 
 from freamer_rl.layers.checks import check_finite, value_checks_active
 from freamer_rl.layers.dedup import dedup_rows, distinct_rows
@@ -110,7 +111,7 @@ class RewardEncoder(nn.Module):
     def _encode(self, x: torch.Tensor) -> torch.Tensor:
         """``x [b, H]`` -> ``[b, out_dim]``."""
         if self.symlog:
-            x = torch.sign(x) * torch.log1p(x.abs())
+            x = symlog(x)
         h = F.relu(self.conv(x.unsqueeze(1))).flatten(1)
         return self.proj(h)
 
