@@ -1,11 +1,13 @@
 """Modality corruption transforms (freamer_rl.run.corruption): each kind on a real env, against closed forms where
 there is one, configured from recipes for training and evaluation, for FreamerV1 and the PPO baseline."""
 
+import functools
 from pathlib import Path
 
 import pytest
 import torch
-from torchrl.envs import Compose, InitTracker, TransformedEnv
+from tensordict import TensorDict
+from torchrl.envs import Compose, InitTracker, SerialEnv, TransformedEnv
 from torchrl.envs.utils import check_env_specs
 
 from freamer_rl.config.sections import CorruptionConfig
@@ -43,6 +45,7 @@ def _env(*transforms, pixels=False):
         ("gaussian", "reward_history", 0.5, False),
         ("salt", "grid", 0.3, False),
         ("dropout", "grid", 0.5, False),
+        ("dropout_episode", "pixels", 0.5, True),
         ("stale", "grid", 3, False),
         ("noisy_tv", "pixels", 0.25, True),
         ("salt", "mission_tokens", 0.5, False),
@@ -83,6 +86,41 @@ def test_dropout_zeroes_the_whole_key_and_marks_it():
     present = data["grid_present"].reshape(-1).bool()
     assert 0.4 < present.float().mean() < 0.6
     assert (data["grid"][~present] == 0).all() and (data["grid"][present].sum((-1, -2, -3)) > 0).all()
+
+
+def test_episode_dropout_holds_its_draw_until_that_env_resets():
+    torch.manual_seed(0)
+    t = ModalityCorruption("x", "dropout_episode", 0.25)
+    td = lambda: TensorDict({"x": torch.ones(4000, 3)}, batch_size=[4000])  # noqa: E731
+    first = t._corrupt(td(), None)["x_present"].squeeze(-1)  # every env starts an episode
+    assert abs(float(first.mean()) - 0.75) < 0.03
+    for _ in range(3):  # steps continue the episode: the same draw, the key zeroed exactly where it is dropped
+        step = t._call(td())
+        assert torch.equal(step["x_present"].squeeze(-1), first)
+        assert torch.equal(step["x"], first.unsqueeze(-1).expand(4000, 3))
+    restart = torch.arange(4000) < 2000
+    reset = t._reset(TensorDict({"_reset": restart.unsqueeze(-1)}, batch_size=[4000]), td())
+    after = reset["x_present"].squeeze(-1)
+    assert torch.equal(after[~restart], first[~restart])  # envs that did not reset keep theirs
+    assert 0.3 < float((after[restart] != first[restart]).float().mean()) < 0.45  # 2 * 0.25 * 0.75 = 0.375 redrawn
+
+
+def test_episode_dropout_is_constant_within_each_episode_of_a_batched_env():
+    torch.manual_seed(0)
+    base = SerialEnv(4, functools.partial(make_minigrid_env, "MiniGrid-Empty-5x5-v0", include_mission=False))
+    env = TransformedEnv(base, Compose(InitTracker(), ModalityCorruption("grid", "dropout_episode", 0.5)))
+    env.set_seed(0)
+    data = env.rollout(240, break_when_any_done=False)  # Empty-5x5 ends at 100 steps: 2-3 episodes per env
+    present, first = data["grid_present"].squeeze(-1).bool(), data["is_init"].squeeze(-1)
+    kept = []
+    for e in range(4):
+        starts = first[e].nonzero().squeeze(-1).tolist() + [first.shape[1]]
+        for a, b in zip(starts, starts[1:]):
+            assert present[e, a:b].all() or not present[e, a:b].any(), (e, a, b)
+            assert (data["grid"][e, a:b][~present[e, a:b]] == 0).all()
+            kept.append(bool(present[e, a]))
+    assert len(kept) >= 8 and any(kept) and not all(kept), kept  # both draws occur across the episodes
+    env.close()
 
 
 def test_stale_sensor_holds_the_value_for_k_steps():

@@ -37,6 +37,7 @@ CORRUPTION_KINDS: dict[str, tuple[Any, str]] = {
     "gaussian": (lambda v: 0 <= v <= 100, "a noise scale in [0, 100] (times the key's running std)"),
     "salt": (lambda v: 0 <= v <= 1, "a replacement probability in [0, 1]"),
     "dropout": (lambda v: 0 <= v <= 1, "a drop probability in [0, 1]"),
+    "dropout_episode": (lambda v: 0 <= v <= 1, "a drop probability in [0, 1] (per episode)"),
     "stale": (lambda v: v >= 1 and float(v).is_integer(), "a whole number of steps >= 1"),
     "noisy_tv": (lambda v: 0 < v <= 1, "the share of the key in (0, 1]"),
 }

@@ -213,7 +213,7 @@ def build_parser(prog: str = "freamer-rl health corruption") -> argparse.Argumen
     p = argparse.ArgumentParser(prog=prog, description="evaluate health runs against a sensor corruption level")
     p.add_argument("runs", nargs="+", help="health run directories (or their checkpoint.pt)")
     p.add_argument("--key", required=True, help="imu, imu[0:12] (hand), imu[12:24] (chest), imu[24:36], hr_features")
-    p.add_argument("--kind", default="gaussian", help="gaussian, dropout, stale, noisy_tv")
+    p.add_argument("--kind", default="gaussian", help="gaussian, dropout, dropout_episode, stale, noisy_tv")
     p.add_argument("--levels", default="0,0.5,1,2", help="comma-separated levels of the kind")
     p.add_argument("--episodes", type=int, default=20)
     p.add_argument("--seed", type=int, default=12345, help="env seed of every evaluation")

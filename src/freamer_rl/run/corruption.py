@@ -15,6 +15,8 @@ Kinds (``level`` means):
   uniform random value of the key's spec range (salt-and-pepper / random-token replacement).
 * ``dropout`` -- with probability ``level`` per env and step the whole key is zeroed; ``<key>_present`` (float
   ``[*B, 1]``, 1 = kept) is written beside it for a policy that wants to read it.
+* ``dropout_episode`` -- the same, drawn once per env and episode (at its reset) and held to its end: a sensor that
+  is dead for a whole episode, the case a per-step dropout never shows a policy (RME-style modality dropout).
 * ``stale`` -- a frozen sensor: the value is refreshed every ``level`` steps and held in between (per env; an
   episode start refreshes it).
 * ``noisy_tv`` -- a distractor inside the key: a share ``level`` of it (a top-left square of an image, the last
@@ -59,6 +61,7 @@ logger = logging.getLogger(__name__)
 
 _INTEGER_ONLY = {"salt"}
 _FLOAT_OR_PIXELS = {"gaussian"}
+_DROPOUTS = {"dropout", "dropout_episode"}
 
 
 def _is_integer(dtype: torch.dtype) -> bool:
@@ -112,6 +115,7 @@ class ModalityCorruption(Transform):
         self._stats = torch.zeros(3, dtype=torch.float64)  # count, mean, M2 of the clean values (Welford)
         self._held: torch.Tensor | None = None
         self._age: torch.Tensor | None = None
+        self._keep: torch.Tensor | None = None  # dropout_episode: [*B] bool, this episode's draw per env
 
     # -- specs ---------------------------------------------------------------------------------------------------
     def transform_observation_spec(self, observation_spec):
@@ -141,7 +145,7 @@ class ModalityCorruption(Transform):
             if self.channels is not None:  # per-entry bounds of the full last dim: keep the slice's
                 low, high = (self._slice(b) if b.ndim and b.shape[-1] == spec.shape[-1] else b for b in (low, high))
             self._range = (low, high)
-        if self.kind == "dropout":
+        if self.kind in _DROPOUTS:
             observation_spec[self.present_key] = Unbounded(
                 (*spec.shape[: len(observation_spec.shape)], 1), device=spec.device, dtype=torch.float32
             )
@@ -178,8 +182,9 @@ class ModalityCorruption(Transform):
         return math.sqrt(m2 / n) if n > 0 else 0.0
 
     # -- corruption ----------------------------------------------------------------------------------------------
-    def _corrupt(self, td: TensorDictBase, update: torch.Tensor | None) -> TensorDictBase:
-        """Corrupt ``td[key]``; ``update`` [*B] marks the envs whose per-env state may change (None: all)."""
+    def _corrupt(self, td: TensorDictBase, update: torch.Tensor | None, *, at_reset: bool = True) -> TensorDictBase:
+        """Corrupt ``td[key]``; ``update`` [*B] marks the envs whose per-env state may change (None: all);
+        ``at_reset``: those envs start an episode (a step output continues one)."""
         full = td.get(self.key, None)
         if full is None:
             raise KeyError(f"{self.where}: observation {self.key!r} missing from the env's output")
@@ -188,8 +193,11 @@ class ModalityCorruption(Transform):
         if update is None:
             update = torch.ones(batch, dtype=torch.bool, device=x.device)
         self._update_stats(x[update])
-        if self.kind == "dropout":
-            keep = torch.rand(batch, device=x.device) >= self.level
+        if self.kind in _DROPOUTS:
+            if self.kind == "dropout":
+                keep = torch.rand(batch, device=x.device) >= self.level
+            else:
+                keep = self._episode_keep(batch, x.device, update if at_reset else torch.zeros_like(update))
             td.set(self.present_key, keep.to(torch.float32).unsqueeze(-1))
             out = x * keep.reshape((*batch, *([1] * (x.ndim - len(batch))))).to(x.dtype)
         elif self.kind == "stale":
@@ -232,6 +240,14 @@ class ModalityCorruption(Transform):
             out = flat.reshape(x.shape)
         return out
 
+    def _episode_keep(self, batch: torch.Size, device: torch.device, start: torch.Tensor) -> torch.Tensor:
+        """dropout_episode: the per-env keep flag [*B], drawn anew where ``start`` [*B] (an episode begins; every env
+        the first time) and held elsewhere."""
+        draw = torch.rand(batch, device=device) >= self.level
+        fresh = self._keep is None or self._keep.shape != draw.shape
+        self._keep = draw if fresh else torch.where(start, draw, self._keep)
+        return self._keep
+
     def _stale(self, x: torch.Tensor, update: torch.Tensor, nb: int) -> torch.Tensor:
         if self._held is None or self._held.shape != x.shape:
             self._held, self._age = x.clone(), torch.zeros(x.shape[:nb], dtype=torch.long, device=x.device)
@@ -243,7 +259,7 @@ class ModalityCorruption(Transform):
 
     # -- TorchRL hooks ---------------------------------------------------------------------------------------------
     def _call(self, next_tensordict: TensorDictBase) -> TensorDictBase:
-        return self._corrupt(next_tensordict, None)
+        return self._corrupt(next_tensordict, None, at_reset=False)
 
     def _reset(self, tensordict: TensorDictBase, tensordict_reset: TensorDictBase) -> TensorDictBase:
         mask = tensordict.get("_reset", None) if tensordict is not None else None
@@ -294,7 +310,7 @@ class SensorCopy(Transform):
 class PresenceFlag(Transform):
     """``<key>_present`` (float ``[*B, 1]``) in every phase, 1 where nothing wrote it (``env.presence: [key]``).
 
-    A ``dropout`` corruption of ``key`` writes the flag itself (0 where it dropped the key) and this transform, placed
+    A ``dropout`` (or ``dropout_episode``) corruption of ``key`` writes the flag itself (0 where it dropped the key) and this transform, placed
     after the corruptions, leaves that value alone; without one (a clean evaluation, a Gaussian or salt corruption)
     the flag reads 1. So a policy that reads the flag (FreamerV1's ``model.presence_keys``, a baseline's
     ``network.observation_keys``) finds it in every env of the run, trained with dropout or not."""
