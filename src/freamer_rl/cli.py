@@ -108,9 +108,9 @@ def _parser() -> argparse.ArgumentParser:
         default=None,
         metavar="KEY:KIND:LEVEL",
         help="corrupt an observation during evaluation, e.g. pixels:gaussian:1.0, grid:salt:0.3, "
-        "grid:dropout:0.5, grid:dropout_episode:0.5, direction:stale:4, pixels:noisy_tv:0.25, or embed.state:gaussian:4 "
-        "(noise on a Layer-1 embedding, Table 13); repeatable; replaces the recipe's env.corrupt "
-        "entries for evaluation (--corrupt none: a clean evaluation)",
+        "grid:dropout:0.5, grid:dropout_episode:0.5, direction:stale:4, pixels:noisy_tv:0.25, or "
+        "embed.state:gaussian:4 (noise on a Layer-1 embedding, Table 13); repeatable; replaces the recipe's "
+        "env.corrupt entries for evaluation (--corrupt none: a clean evaluation)",
     )
 
     p_health = sub.add_parser(

@@ -310,10 +310,11 @@ class SensorCopy(Transform):
 class PresenceFlag(Transform):
     """``<key>_present`` (float ``[*B, 1]``) in every phase, 1 where nothing wrote it (``env.presence: [key]``).
 
-    A ``dropout`` (or ``dropout_episode``) corruption of ``key`` writes the flag itself (0 where it dropped the key) and this transform, placed
-    after the corruptions, leaves that value alone; without one (a clean evaluation, a Gaussian or salt corruption)
-    the flag reads 1. So a policy that reads the flag (FreamerV1's ``model.presence_keys``, a baseline's
-    ``network.observation_keys``) finds it in every env of the run, trained with dropout or not."""
+    A ``dropout`` (or ``dropout_episode``) corruption of ``key`` writes the flag itself (0 where it dropped the key)
+    and this transform, placed after the corruptions, leaves that value alone; without one (a clean evaluation, a
+    Gaussian or salt corruption) the flag reads 1. So a policy that reads the flag (FreamerV1's
+    ``model.presence_keys``, a baseline's ``network.observation_keys``) finds it in every env of the run, trained
+    with dropout or not."""
 
     def __init__(self, key: str) -> None:
         self.key, self.flag = key, f"{key}_present"
