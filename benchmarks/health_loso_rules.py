@@ -5,13 +5,14 @@
 Reads a suite folder of ``recipes/suites/health_mf_loso.yaml`` (runs of collector-based trainers on the ``health``
 adapter, each evaluated by the suite's ``evaluate:`` section on the subjects of its ``env.eval_options``: its
 ``eval/clean.json``), scores the heart-rate rule, always-Continue and the oracle planner on the same episodes of each
-fold (the rule and Continue through the collector-based evaluator, the oracle through the health trainer's; the
-rule is scored both ways and must agree, or the script stops), and writes, in the suite folder:
+fold (the rule, the heart-rate controller -- the rule plus Increase back to plan below 145 bpm -- and Continue through
+the collector-based evaluator, the oracle through the health trainer's; the rule is scored both ways and must agree,
+or the script stops), and writes, in the suite folder:
 
-* ``loso_references.json``: the references per fold (cached: a rerun scores only new folds);
+* ``loso_references.json``: the references per fold (cached: a rerun scores only new folds and references);
 * ``loso_vs_rules.json``: one row per run (arm, seed, held-out subject, return, the references);
-* ``loso_vs_rules.md``: the health suites' leave-one-subject-out table (reward, rule, oracle, paired difference to
-  the rule and fraction of the oracle, each a mean over folds with a two-level bootstrap interval).
+* ``loso_vs_rules.md``: the health suites' leave-one-subject-out table (reward, rule, oracle, paired differences to
+  the rule and to the controller, fraction of the oracle, each a mean over folds with a two-level bootstrap interval).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from freamer_rl.run.evaluation import run_episodes
 from freamer_rl.trainers.registry import get_trainer, load_config
 
 RULE_TOLERANCE = 1e-3  # the rule's return through both evaluators (float32 sums of 120 steps)
+COLLECTOR_REFERENCES = ("hr_threshold", "hr_controller", "continue")  # scored by the collector-based evaluator
 
 
 def _runs(suite_dir: Path) -> list[tuple[str, int, Path]]:
@@ -61,16 +63,21 @@ def run_config(run: Path):
     return load_config(run / "config.yaml", schema=get_trainer(trainer).schema)
 
 
-def references(run: Path, episodes: int, seed: int) -> dict[str, float]:
-    """The rule, Continue and the oracle on the evaluation episodes of ``run``'s held-out subjects."""
+def references(run: Path, episodes: int, seed: int, known: dict[str, float] | None = None) -> dict[str, float]:
+    """The rule, the controller, Continue and the oracle on the evaluation episodes of ``run``'s held-out subjects;
+    ``known``: a cached fold's references, of which only the missing ones are scored."""
+    known = dict(known or {})
     cfg = run_config(run)
     if not cfg.env.eval_options.get("subjects"):
         raise SystemExit(f"error: {run / 'config.yaml'}: env.eval_options.subjects is not set (no held-out subject)")
     options = {"episodes": episodes, "deterministic": True, "num_envs": episodes, "seed": seed}
-    out = {
+    out = known | {
         f"eval_ref_{name}_return": run_episodes(cfg, make_reference_policy(name), [], **options)["return_mean"]
-        for name in ("hr_threshold", "continue")
+        for name in COLLECTOR_REFERENCES
+        if f"eval_ref_{name}_return" not in known
     }
+    if "eval_ref_oracle_return" in known:  # checked against the health trainer when it was scored
+        return out
     health = _health_config(cfg, episodes, seed)
     rule = evaluate_reference(health, "hr_threshold")["return_mean"]
     if not math.isclose(rule, out["eval_ref_hr_threshold_return"], abs_tol=RULE_TOLERANCE):
@@ -101,8 +108,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"error: {run}/eval/clean.json: expected {args.episodes} deterministic episodes", file=sys.stderr)
             return 1
         fold = ", ".join(str(s) for s in evaluation["env_options"]["subjects"])
-        if fold not in cache:
-            cache[fold] = references(run, args.episodes, args.seed)
+        scored = cache.get(fold, {})
+        if fold not in cache or any(f"eval_ref_{name}_return" not in scored for name in COLLECTOR_REFERENCES):
+            cache[fold] = references(run, args.episodes, args.seed, scored)
             cache_path.write_text(json.dumps(cache, indent=1))
         arm = re.sub(r"_fold\d+$", "", label)
         rows.append(
@@ -111,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
             | cache[fold]
         )
     (args.suite_dir / "loso_vs_rules.json").write_text(json.dumps(rows, indent=1))
-    lines = [f"# {args.suite_dir.name}: held-out subjects against the heart-rate rule", *loso_markdown(rows)]
+    lines = [f"# {args.suite_dir.name}: held-out subjects against the heart-rate rules", *loso_markdown(rows)]
     (args.suite_dir / "loso_vs_rules.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return 0

@@ -18,6 +18,8 @@ key                        dtype / shape          meaning
                                                   rate of change and cumulative exertion restart at 0 on reset
 ``"heart_rate"``           float32 ``[B, 1]``     model heart rate (bpm), for plots and anomaly detection
 ``"activity"``             int64 ``[B]``          PAMAP2 activity id being performed (timeline, or the agent's Change)
+``"level"``                float32 ``[B, 1]``     intensity level the interventions have set (1 = as planned, 0 after
+                                                  an Alert): what a coaching app knows it prescribed
 ``("episode", "return")``  float32 ``[B, 1]``     sum of rewards since the episode's reset
 ``("episode", "violations")``  int64 ``[B, 1]``   number of steps that ended with heart rate > 160 bpm
 ``("episode", "length")``  int64 ``[B, 1]``       steps since the reset
@@ -263,6 +265,7 @@ class HealthEnv(EnvBase):
             hr_features=Unbounded(shape=(B, 16), dtype=torch.float32, device=dev),
             heart_rate=Unbounded(shape=(B, 1), dtype=torch.float32, device=dev),
             activity=Categorical(MAX_ACTIVITY_ID + 1, shape=(B,), dtype=torch.int64, device=dev),
+            level=Unbounded(shape=(B, 1), dtype=torch.float32, device=dev),
             episode=Composite(
                 {
                     "return": Unbounded(shape=(B, 1), dtype=torch.float32, device=dev),
@@ -326,6 +329,7 @@ class HealthEnv(EnvBase):
             "hr_features": feats,
             "heart_rate": hr[:, None].clone(),
             "activity": act,
+            "level": st.level[:, None].clone(),
             "episode": episode,
         }
 

@@ -158,5 +158,17 @@ def test_held_out_suite_and_its_rule_table(tmp_path):
     rule = run_episodes(cfg, make_reference_policy("hr_threshold"), [], episodes=4, deterministic=True, num_envs=4)
     assert rule["env_options"]["subjects"] == [102]
     assert all(r["eval_ref_hr_threshold_return"] == rule["return_mean"] for r in rows if r["eval_subjects"] == "102")
+    ctrl = run_episodes(cfg, make_reference_policy("hr_controller"), [], episodes=4, deterministic=True, num_envs=4)
+    assert all(r["eval_ref_hr_controller_return"] == ctrl["return_mean"] for r in rows if r["eval_subjects"] == "102")
+    # a cache written before the controller existed: only the missing reference is scored, the rest kept
+    cache_path = out / "loso_references.json"
+    cache = json.loads(cache_path.read_text())
+    for refs in cache.values():
+        refs.pop("eval_ref_hr_controller_return")
+        refs["eval_ref_oracle_return"] = -1.0  # a marker: a rescored oracle would overwrite it
+    cache_path.write_text(json.dumps(cache))
+    assert script.main([str(out), "--episodes", "4"]) == 0
+    rescored = json.loads(cache_path.read_text())
+    assert all(r["eval_ref_oracle_return"] == -1.0 and "eval_ref_hr_controller_return" in r for r in rescored.values())
     table = (out / "loso_vs_rules.md").read_text()
     assert "| mlp | 2 | 2 |" in table and "| freamer | 2 | 2 |" in table

@@ -65,6 +65,7 @@ def test_observation_keys_shapes_and_dtypes():
     assert td["hr_features"].shape == (3, 16) and td["hr_features"].dtype == torch.float32
     assert td["heart_rate"].shape == (3, 1) and td["heart_rate"].dtype == torch.float32
     assert td["activity"].shape == (3,) and td["activity"].dtype == torch.int64
+    assert td["level"].shape == (3, 1) and td["level"].dtype == torch.float32
     for key, dtype in (("return", torch.float32), ("violations", torch.int64), ("length", torch.int64)):
         assert td["episode", key].shape == (3, 1) and td["episode", key].dtype == dtype
     assert env.action_spec.n == len(HEALTH_ACTIONS) == 5
@@ -198,6 +199,33 @@ def test_alert_costs_only_outside_danger_and_holds_the_stop():
     for _ in range(10):  # the emergency stop (30 s) holds the intensity down even when the agent increases
         td = step_mdp(env.step(td.set("action", torch.tensor([INCREASE, INCREASE]))))
         assert (env.level <= 0.25).all()
+
+
+def test_level_observation_is_the_prescribed_intensity():
+    """``"level"`` is 1 after a reset, follows Rest (-0.25) and Increase (+0.25, at most 2) on the step they act,
+    is 0 after an Alert, back to 1 at a new activity segment (0.25 while an Alert's stop runs), and always equals the env's own ``level``."""
+    env = make(6, seed=5, rate_hz=0.2)  # 5 s a step: the Alert's 30 s stop lasts 6 steps
+    td = env.reset()
+    assert torch.equal(td["level"], torch.ones(6, 1))
+    seen_boundary = False
+    for action in (REST, REST, INCREASE, ALERT, CONTINUE) + (INCREASE,) * 12:
+        before = env.level.clone()
+        planned, hold = env._st.planned.clone(), env._st.hold.clone()
+        td = env.step(td.set("action", torch.full((6,), action)))
+        nxt = td["next"]
+        assert torch.equal(nxt["level"].squeeze(-1), env.level)
+        moved = env._st.planned == planned  # no new segment on this step: the action's level is observed
+        seen_boundary |= bool((~moved).any())
+        delta = {REST: -0.25, INCREASE: 0.25}.get(action, 0.0)
+        want = (before + delta).clamp(0.0, 2.0) if action != ALERT else torch.zeros(6)
+        if action in (INCREASE, CONTINUE):  # the Alert's stop caps the level at 0.25 for 30 s
+            want = torch.where(hold > 0, want.clamp_max(0.25), want)
+        assert torch.allclose(nxt["level"].squeeze(-1)[moved], want[moved]), action
+        at_plan = torch.where(env._st.hold > 0, 0.25, 1.0)  # a running Alert stop still caps a new segment's level
+        assert torch.equal(nxt["level"].squeeze(-1)[~moved], at_plan[~moved])
+        td = step_mdp(td)
+    assert seen_boundary  # a new segment's reset of the level was checked too
+    assert (env.level > 1.0).any()  # Increase goes above plan once the stop has passed
 
 
 def test_change_switches_the_activity_type():

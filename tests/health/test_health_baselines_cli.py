@@ -18,7 +18,7 @@ def test_baselines_prints_the_table_and_writes_its_rows(tmp_path, capsys):
     table = capsys.readouterr().out
     rows = json.loads(out.read_text())
     names = [r["policy"] for r in rows]
-    assert names[0] == "oracle" and {"hr_threshold", "continue"} <= set(names)
+    assert names[0] == "oracle" and {"hr_controller", "hr_threshold", "continue"} <= set(names)
     for r in rows:  # every row printed, with the value written beside it
         assert f"| {r['policy']} | {r['return_mean']:.1f}" in table and r["episodes"] == 3
     assert rows[0]["fraction_of_oracle"] == 1.0

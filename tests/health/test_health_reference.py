@@ -12,6 +12,7 @@ from freamer_rl.health.reference import (
     ACTION_NAMES,
     REFERENCE_POLICIES,
     ConstantActionPolicy,
+    HeartRateControllerPolicy,
     HeartRateThresholdPolicy,
     UniformRandomPolicy,
     evaluate_reference,
@@ -64,6 +65,42 @@ def test_policies_write_actions_of_the_batch_shape(batch):
     out = HeartRateThresholdPolicy(rest_above=150.0, alert_above=185.0)(td.clone())
     expected = torch.where(hr > 185, 4, torch.where(hr > 150, 1, 0)).reshape(batch)
     assert torch.equal(out["action"], expected)
+
+
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_controller_increases_only_below_its_threshold_and_below_plan(batch):
+    """The rule's Rest / Alert above 150 / 185 bpm wherever the level is; Increase below 145 bpm only where the level
+    is below 1 (never above plan); Continue from 145 to 150 and wherever the level is at plan."""
+    hr = torch.tensor([100.0, 100.0, 144.9, 145.0, 149.0, 155.0, 190.0, 120.0])
+    level = torch.tensor([0.75, 1.0, 0.5, 0.5, 0.25, 0.5, 0.0, 1.25])
+    expected = torch.tensor([2, 0, 2, 0, 0, 1, 4, 0])
+    n = max(1, torch.Size(batch).numel())
+    idx = torch.arange(n) % len(hr)
+    td = TensorDict(
+        {"heart_rate": hr[idx].reshape(*batch, 1), "level": level[idx].reshape(*batch, 1)}, batch_size=batch
+    )
+    out = make_reference_policy("hr_controller")(td)
+    assert out["action"].shape == batch and torch.equal(out["action"], expected[idx].reshape(batch))
+    with pytest.raises(ValueError, match="increase_below"):
+        HeartRateControllerPolicy(increase_below=155.0)
+
+
+def test_controller_restores_the_level_the_rule_leaves_down():
+    """On the same episodes of the most active synthetic subject the rule rests and its level stays below plan
+    until the next activity segment; the controller brings it back (more steps at plan) and returns more."""
+    cfg = load_health_config(
+        ROOT / "recipes" / "health" / "health_mlp.yaml",
+        ["env.id=pamap2-health-varied", "env.rate_hz=0.2", "env.episode_length=120", "env.subjects=[106]"]
+        + ["eval.num_envs=8", "eval.horizon_context=4", "eval.horizon_max=8", "world_model.seq_len=8"],
+    )
+    from freamer_rl.health.reference import reference_rollout
+
+    rule, ctrl = reference_rollout(cfg, "hr_threshold"), reference_rollout(cfg, "hr_controller")
+    rule_below = (rule.get("level") < 1.0).float().mean()
+    ctrl_below = (ctrl.get("level") < 1.0).float().mean()
+    assert (rule.get("action") == 1).any() and (ctrl.get("action") == 2).any()
+    assert ctrl_below < 0.5 * rule_below
+    assert rollout_metrics(ctrl)["return_mean"] > rollout_metrics(rule)["return_mean"] + 3.0
 
 
 def test_oracle_is_registered_with_its_defaults():

@@ -22,6 +22,15 @@ from freamer_rl.trainers.registry import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
 HR_RULE = ["action_prior.key=heart_rate", "action_prior.thresholds=[150, 185]", "action_prior.actions=[0, 1, 4]"]
+# freamer_rl.health.reference.HeartRateControllerPolicy as a prior: Increase below 145 bpm while the level is below plan
+HR_CONTROLLER = [
+    "action_prior.key=heart_rate",
+    "action_prior.thresholds=[145, 150, 185]",
+    "action_prior.actions=[2, 0, 1, 4]",
+    "action_prior.condition.key=level",
+    "action_prior.condition.threshold=0.99",
+    "action_prior.condition.actions=[0, 0, 1, 4]",
+]
 
 
 @pytest.mark.parametrize("batch", [(), (3,), (2, 3)])
@@ -49,8 +58,31 @@ def test_an_interval_without_prior_adds_nothing():
     assert torch.equal(out, want)
 
 
+@pytest.mark.parametrize("batch", [(), (4,), (2, 4)])
+def test_a_condition_picks_the_row_of_actions(batch):
+    """``y <= threshold``: the first row (Increase below 145); ``y > threshold``: the condition's row (Continue
+    there); the heart-rate buckets are the same in both rows. Without ``y`` a conditioned prior refuses to run."""
+    prior = ThresholdRulePrior([145.0, 150.0, 185.0], [2, 0, 1, 4], 5, 5.0, 0.99, [-1, 0, 1, 4])
+    cases = [(100.0, 0.5, 2), (100.0, 1.0, None), (147.0, 0.5, 0), (147.0, 1.25, 0), (160.0, 0.0, 1), (190.0, 1.0, 4)]
+    for hr, level, action in cases:
+        out = prior(torch.full((*batch, 1), hr), torch.zeros(*batch, 5), torch.full((*batch, 1), level))
+        want = torch.zeros(5)
+        if action is not None:  # -1 in the condition's row: no prior there
+            want[action] = 5.0
+        assert out.shape == (*batch, 5) and torch.equal(out.reshape(-1, 5), want.expand(out.reshape(-1, 5).shape))
+    with pytest.raises(ValueError, match="has a condition: pass its observation y"):
+        prior(torch.full((3, 1), 100.0), torch.zeros(3, 5))
+    plain = ThresholdRulePrior([150.0, 185.0], [0, 1, 4], 5, 2.0)
+    assert set(plain.state_dict()) == {"thresholds", "actions"}  # checkpoints of unconditioned priors unchanged
+
+
 def _spec() -> Composite:
-    return Composite(hidden=Unbounded(shape=(8,)), heart_rate=Unbounded(shape=(1,)), imu=Unbounded(shape=(36,)))
+    return Composite(
+        hidden=Unbounded(shape=(8,)),
+        heart_rate=Unbounded(shape=(1,)),
+        level=Unbounded(shape=(1,)),
+        imu=Unbounded(shape=(36,)),
+    )
 
 
 def test_actor_with_the_prior_starts_as_the_rule_and_ppo_trains_its_head():
@@ -97,6 +129,17 @@ def test_actor_with_the_prior_starts_as_the_rule_and_ppo_trains_its_head():
         ([*HR_RULE, "action_prior.logit=-1.0"], r"logit: expected a value >= 0"),
         ([*HR_RULE[:2], "action_prior.actions=[-1, -1, -1]"], r"actions: expected action indices >= 0 \(or -1"),
         (["action_prior.thresholds=[150]", "action_prior.actions=[0, 1]"], r"key: thresholds/actions are set"),
+        ([*HR_RULE, "action_prior.condition.actions=[0, 1, 4]"], r"condition\.key: actions are set but key is null"),
+        ([*HR_RULE, "action_prior.condition.key=heart_rate"], r"condition\.key: 'heart_rate' is the prior's own key"),
+        (
+            [*HR_CONTROLLER[:5], "action_prior.condition.actions=[0, 1, 4]"],
+            r"condition\.actions: expected one action per",
+        ),
+        ([*HR_CONTROLLER[:5], "action_prior.condition.actions=[0, -3, 1, 4]"], r"condition\.actions: expected action"),
+        (
+            [*HR_CONTROLLER[:4], "action_prior.condition.threshold=.nan"],
+            r"condition\.threshold: got nan, expected a finite",
+        ),
     ],
 )
 @pytest.mark.parametrize(
@@ -115,18 +158,31 @@ def test_prior_key_must_be_one_scalar_observation_with_known_actions():
         check_prior_key(ActionPriorConfig("imu", [150.0], [0, 1]), _spec(), Categorical(5), "model")
     with pytest.raises(EnvSetupError, match=r"network\.action_prior\.actions: \[0, 7\] names an action >= the env's 5"):
         check_prior_key(ActionPriorConfig("heart_rate", [150.0], [0, 7]), _spec(), Categorical(5), "network")
+    controller = ActionPriorConfig("heart_rate", [145.0, 150.0], [2, 0, 1])
+    controller.condition.key, controller.condition.threshold, controller.condition.actions = "level", 0.99, [0, 0, 1]
+    check_prior_key(controller, _spec(), Categorical(5), "network")
+    controller.condition.key = "imu"
+    with pytest.raises(EnvSetupError, match=r"network\.action_prior\.condition\.key: 'imu' has shape \[36\]"):
+        check_prior_key(controller, _spec(), Categorical(5), "network")
+    controller.condition.key, controller.condition.actions = "level", [0, 6, 1]
+    with pytest.raises(EnvSetupError, match=r"network\.action_prior\.condition\.actions: \[0, 6, 1\] names an action"):
+        check_prior_key(controller, _spec(), Categorical(5), "network")
     with pytest.raises(EnvSetupError, match=r"model\.action_prior: needs a discrete action"):
         check_prior_key(ActionPriorConfig("heart_rate", [150.0], [0, 1]), _spec(), Unbounded(shape=(2,)), "model")
     with pytest.raises(EnvSetupError, match=r"action_prior: needs a discrete action"):
         build_actor(Unbounded(shape=(2,)), 8, 16, prior=ActionPriorConfig("heart_rate", [150.0], [0, 1]))
 
 
+@pytest.mark.parametrize(("rule_name", "rule_overrides"), [("hr_threshold", HR_RULE), ("hr_controller", HR_CONTROLLER)])
 @pytest.mark.parametrize(
     ("recipe", "section"), [("baselines/ppo_mlp_health.yaml", "network"), ("health_model_free.yaml", "model")]
 )
-def test_a_policy_with_the_heart_rate_prior_scores_exactly_the_rule(recipe, section, tmp_path, capsys):
+def test_a_policy_with_the_heart_rate_prior_scores_exactly_the_rule(
+    recipe, section, rule_name, rule_overrides, tmp_path, capsys
+):
     """Trained on one tiny batch, the deterministic policy is still the rule: its held-out evaluation return is the
-    rule's on the same episodes (the prior is in the saved policy, read back by ``freamer-rl eval``)."""
+    rule's on the same episodes (the prior is in the saved policy, read back by ``freamer-rl eval``); the heart-rate
+    rule as a one-key prior, the controller as a prior with a condition on the env's ``"level"``."""
     common = [
         "env.options.synthetic_duration_s=300.0",
         "env.options.episode_length=40",
@@ -136,17 +192,22 @@ def test_a_policy_with_the_heart_rate_prior_scores_exactly_the_rule(recipe, sect
     tiny = ["env.num_envs=2", "ppo.frames_per_batch=64", "ppo.minibatch_size=32", "ppo.epochs=1"]
     tiny += ["run.total_frames=64", "logging.progress_bar=false"]
     run = tmp_path / "run"
-    overrides = [*common, *tiny, *(f"{section}.{o}" for o in HR_RULE)]
+    overrides = [*common, *tiny, *(f"{section}.{o}" for o in rule_overrides)]
     assert cli.main(["train", str(ROOT / "recipes" / recipe), *overrides, "--run-dir", str(run)]) == 0
     capsys.readouterr()
     assert cli.main(["eval", str(run), "--episodes", "4", "--num-envs", "4", "--deterministic"]) == 0
     ours = json.loads(capsys.readouterr().out)
     cfg = load_config(ROOT / "recipes" / recipe, common)
-    rule = run_episodes(cfg, make_reference_policy("hr_threshold"), [], episodes=4, deterministic=True, num_envs=4)
+    rule = run_episodes(cfg, make_reference_policy(rule_name), [], episodes=4, deterministic=True, num_envs=4)
     cont = run_episodes(cfg, make_reference_policy("continue"), [], episodes=4, deterministic=True, num_envs=4)
     assert rule["return_mean"] != pytest.approx(cont["return_mean"], abs=1.0)  # the rule acts on these episodes
     assert ours["return_mean"] == pytest.approx(rule["return_mean"], abs=1e-4)
-    if section == "network":  # benchmarks/health_action_profile.py: its actions per heart-rate bucket are the rule's
+    if rule_name == "hr_controller":  # the controller's Increase acts on these episodes: not the plain rule's return
+        plain = run_episodes(cfg, make_reference_policy("hr_threshold"), [], episodes=4, deterministic=True, num_envs=4)
+        assert ours["return_mean"] != pytest.approx(plain["return_mean"], abs=0.1)
+    if (
+        section == "network" and rule_name == "hr_threshold"
+    ):  # benchmarks/health_action_profile.py: its actions per heart-rate bucket are the rule's
         spec = importlib.util.spec_from_file_location("profile", ROOT / "benchmarks" / "health_action_profile.py")
         script = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(script)

@@ -110,7 +110,9 @@ def health_markdown(rows: list[dict]) -> list[str]:
 #: the heart-rate rule's and the oracle planner's return on a run's own evaluation episodes (summary.json,
 #: eval.references), beside the run's ``eval_return_mean`` in runs.csv and the leave-one-subject-out section
 HEALTH_REFERENCES = ("eval_ref_hr_threshold_return", "eval_ref_oracle_return")
-LOSO_VALUES = ("eval_return_mean", *HEALTH_REFERENCES)
+#: the heart-rate controller (the rule plus Increase back to plan), where a report scored it (NaN elsewhere)
+CONTROLLER_REFERENCE = "eval_ref_hr_controller_return"
+LOSO_VALUES = ("eval_return_mean", *HEALTH_REFERENCES, CONTROLLER_REFERENCE)
 
 
 def _loso_folds(results: list[dict]) -> dict[str, dict[str, list[dict[str, float]]]]:
@@ -140,12 +142,13 @@ def _ci_cell(scores: dict[str, list[float]], digits: int = 1) -> str:
 
 def _loso_row(enc: str, by_fold: dict[str, list[dict[str, float]]]) -> str:
     """One encoder's overall row: reward, the rule and the oracle on the same episodes, the paired difference to the
-    rule and the fraction of the oracle (each a mean over folds with its subject bootstrap), folds at or above the
+    rule (and to the heart-rate controller, where scored) and the fraction of the oracle (each a mean over folds with its subject bootstrap), folds at or above the
     rule, and each fold's mean reward / rule."""
     reward = _fold_values(by_fold, lambda r: r["eval_return_mean"])
     rule = _fold_values(by_fold, lambda r: r["eval_ref_hr_threshold_return"])
     oracle = _fold_values(by_fold, lambda r: r["eval_ref_oracle_return"])
     vs_rule = _fold_values(by_fold, lambda r: r["eval_return_mean"] - r["eval_ref_hr_threshold_return"])
+    vs_controller = _fold_values(by_fold, lambda r: r["eval_return_mean"] - r[CONTROLLER_REFERENCE])
     of_oracle = _fold_values(by_fold, lambda r: r["eval_return_mean"] / r["eval_ref_oracle_return"])
     at_rule = sum(np.mean(v) >= 0 for v in vs_rule.values())
     per_fold = ", ".join(
@@ -153,7 +156,8 @@ def _loso_row(enc: str, by_fold: dict[str, list[dict[str, float]]]) -> str:
     )
     runs = sum(len(v) for v in by_fold.values())
     cells = [enc, str(len(by_fold)), str(runs), _ci_cell(reward), _ci_cell(rule), _ci_cell(oracle)]
-    cells += [_ci_cell(vs_rule), _ci_cell(of_oracle, 3), f"{at_rule}/{len(vs_rule)}" if vs_rule else "", per_fold]
+    cells += [_ci_cell(vs_rule), _ci_cell(vs_controller), _ci_cell(of_oracle, 3)]
+    cells += [f"{at_rule}/{len(vs_rule)}" if vs_rule else "", per_fold]
     return "| " + " | ".join(cells) + " |"
 
 
@@ -171,12 +175,13 @@ def loso_markdown(results: list[dict]) -> list[str]:
         "",
         "Reward: the real-env evaluation return on the held-out subject; HR rule / oracle: the heart-rate rule's and "
         "the oracle planner's return on the same episodes; - HR rule: the paired difference; of oracle: reward / "
-        "oracle. Each a mean over the folds (every fold weighs the same) with a 95% two-level bootstrap interval "
+        "oracle; - controller: the paired difference to the heart-rate controller (the rule plus Increase back to plan "
+        "below 145 bpm; empty where not scored). Each a mean over the folds (every fold weighs the same) with a 95% two-level bootstrap interval "
         "(folds resampled, then each fold's seeds). At >= rule: folds whose mean reward is at or above the rule's. "
         "Per fold: held-out subjects: mean reward / mean HR rule over its seeds.",
         "",
-        "| encoder | folds | runs | reward [95% CI] | HR rule | oracle | - HR rule [95% CI] | of oracle [95% CI] "
-        "| at >= rule | per fold |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| encoder | folds | runs | reward [95% CI] | HR rule | oracle | - HR rule [95% CI] | - controller [95% CI] "
+        "| of oracle [95% CI] | at >= rule | per fold |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     return lines + [_loso_row(enc, by_fold) for enc, by_fold in folds.items()]

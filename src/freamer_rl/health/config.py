@@ -68,7 +68,7 @@ VARIED_ENV_ID = "pamap2-health-varied"
 #: action names of the health env, in index order (``freamer_rl_envs.health.HEALTH_ACTIONS``; the library does not
 #: import envs); the reference policies of :mod:`freamer_rl.health.reference` that ``eval.references`` may name
 ACTION_NAMES: tuple[str, ...] = ("continue", "rest", "increase", "change", "alert")
-REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold", "oracle")
+REFERENCE_POLICIES: tuple[str, ...] = (*ACTION_NAMES, "random", "hr_threshold", "hr_controller", "oracle")
 
 
 @dataclass

@@ -12,6 +12,9 @@ Policies (:data:`REFERENCE_POLICIES`):
 * ``"random"``: uniform over the 5 actions (its own seeded generator);
 * ``"hr_threshold"``: :class:`HeartRateThresholdPolicy` -- Rest while the heart rate is above ``rest_above`` bpm
   (default 150, 10 bpm below the danger zone), Alert above ``alert_above`` (default 185), else Continue;
+* ``"hr_controller"``: :class:`HeartRateControllerPolicy` -- the rule plus Increase below ``increase_below``
+  (default 145 bpm) while the env's ``"level"`` is below plan: it brings the intensity back after a Rest, which the
+  rule never does (the rule's level stays down until the next activity segment);
 * ``"oracle"``: :class:`~freamer_rl.health.oracle.OraclePlanner` -- receding-horizon lookahead on the env's own
   simulator (privileged: it reads the env's state; the ceiling of the table).
 
@@ -44,6 +47,7 @@ __all__ = [
     "ConstantActionPolicy",
     "UniformRandomPolicy",
     "HeartRateThresholdPolicy",
+    "HeartRateControllerPolicy",
     "make_reference_policy",
     "reference_rollout",
     "episode_returns",
@@ -56,7 +60,7 @@ __all__ = [
 ]
 
 #: the rows of the ceiling table (issue 22), the oracle first: every other row is read as a fraction of it
-CEILING_POLICIES: tuple[str, ...] = ("oracle", "hr_threshold", "continue", "rest", "random")
+CEILING_POLICIES: tuple[str, ...] = ("oracle", "hr_controller", "hr_threshold", "continue", "rest", "random")
 
 
 class ConstantActionPolicy(TensorDictModuleBase):
@@ -122,8 +126,37 @@ class HeartRateThresholdPolicy(TensorDictModuleBase):
         return tensordict
 
 
+class HeartRateControllerPolicy(HeartRateThresholdPolicy):
+    """:class:`HeartRateThresholdPolicy` plus **Increase** where ``HR < increase_below`` and ``"level"`` ``[*B, 1]``
+    is below 1 (below plan), so the intensity comes back once the heart rate has; never above plan. Writes
+    ``"action"`` int64 ``[*B]``."""
+
+    def __init__(
+        self,
+        rest_above: float = 150.0,
+        alert_above: float = 185.0,
+        increase_below: float = 145.0,
+        hr_key: Any = "heart_rate",
+        level_key: Any = "level",
+    ) -> None:
+        super().__init__(rest_above, alert_above, hr_key)
+        if not increase_below <= rest_above:
+            raise ValueError(f"increase_below ({increase_below}) must be <= rest_above ({rest_above})")
+        self.increase_below = float(increase_below)
+        self.level_key = level_key
+        self.in_keys = [hr_key, level_key]
+
+    def forward(self, tensordict: TensorDictBase) -> TensorDictBase:
+        below_plan = tensordict.get(self.level_key).reshape(tensordict.batch_size) < 1.0
+        slow = (tensordict.get(self.hr_key).reshape(tensordict.batch_size) < self.increase_below) & below_plan
+        action = super().forward(tensordict).get("action")
+        tensordict.set("action", action.masked_fill(slow, ACTION_NAMES.index("increase")))
+        return tensordict
+
+
 def make_reference_policy(name: str, *, seed: int = 0, **kwargs: Any) -> TensorDictModuleBase:
-    """One of :data:`REFERENCE_POLICIES`. ``kwargs`` go to :class:`HeartRateThresholdPolicy` (``"hr_threshold"``)
+    """One of :data:`REFERENCE_POLICIES`. ``kwargs`` go to :class:`HeartRateThresholdPolicy` (``"hr_threshold"``),
+    :class:`HeartRateControllerPolicy` (``"hr_controller"``)
     or to :class:`~freamer_rl.health.oracle.OraclePlanner` (``"oracle"``: ``horizon``, ``depth``,
     ``noise_samples``, and ``tails``, names of reference policies, default ``("continue", "hr_threshold")``)."""
     if name in ACTION_NAMES:
@@ -132,6 +165,8 @@ def make_reference_policy(name: str, *, seed: int = 0, **kwargs: Any) -> TensorD
         return UniformRandomPolicy(seed=seed)
     if name == "hr_threshold":
         return HeartRateThresholdPolicy(**kwargs)
+    if name == "hr_controller":
+        return HeartRateControllerPolicy(**kwargs)
     if name == "oracle":
         options = {**ORACLE_DEFAULTS, "seed": seed, **kwargs}
         tails = options.pop("tails", ("continue", "hr_threshold"))

@@ -23,7 +23,7 @@ from torchrl.modules import IndependentNormal, OneHotCategorical, ProbabilisticA
 
 from freamer_rl.errors import EnvSetupError
 from freamer_rl.layers.tdmodule import KeyedModule
-from freamer_rl.model.action_prior import ActionPriorConfig, PriorLogits, prior_module
+from freamer_rl.model.action_prior import ActionPriorConfig, PriorLogits, prior_keys, prior_module
 
 __all__ = ["build_actor", "build_critic", "action_kind", "mlp_head", "CRITIC_INPUTS"]
 
@@ -64,7 +64,7 @@ def build_actor(
     """The policy head for ``action_spec`` (table in the module docstring); writes ``action_log_prob``.
 
     ``prior`` (discrete actions only): a threshold rule on one observation added to the logits
-    (:mod:`freamer_rl.model.action_prior`); the head then also reads ``prior.key``."""
+    (:mod:`freamer_rl.model.action_prior`); the head then also reads ``prior.key`` (and ``prior.condition.key``)."""
     kind = action_kind(action_spec)
     if prior is not None and prior.key is not None and kind not in ("categorical", "one_hot"):
         raise EnvSetupError(f"action_prior: needs a discrete action (Categorical / OneHot), the env's is {kind}")
@@ -73,7 +73,7 @@ def build_actor(
         net = mlp_head(in_dim, hidden, n, out_gain=0.01)
         dist = torch.distributions.Categorical if kind == "categorical" else OneHotCategorical
         rule = prior_module(prior, n)
-        in_keys = [in_key] if rule is None else [in_key, prior.key]
+        in_keys = [in_key, *prior_keys(prior)]
         return ProbabilisticActor(
             KeyedModule(net if rule is None else PriorLogits(net, rule), in_keys=in_keys, out_keys=["logits"]),
             in_keys=["logits"],
