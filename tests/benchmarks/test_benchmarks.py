@@ -207,9 +207,10 @@ def test_report_adds_the_loso_overall_row_per_encoder(tmp_path):
         if line.startswith("| ") and not line.startswith("| encoder")
     }
     assert set(rows) == {"mlp", "foundation"}
-    enc, n_folds, runs, reward, rule, oracle, vs_rule, of_oracle, at_rule, per_fold = rows["mlp"]
+    enc, n_folds, runs, reward, rule, oracle, vs_rule, vs_controller, of_oracle, at_rule, per_fold = rows["mlp"]
     assert (n_folds, runs, per_fold) == ("2", "3", "101: 81.0, 102: 70.0")
-    assert (rule, oracle, vs_rule, of_oracle, at_rule) == ("", "", "", "", "")  # these runs record no references
+    # these runs record no references
+    assert (rule, oracle, vs_rule, vs_controller, of_oracle, at_rule) == ("", "", "", "", "", "")
     point, bounds = reward.split(" [")
     low, high = (float(v) for v in bounds.rstrip("]").split(", "))
     assert float(point) == 75.5  # (81 + 70) / 2, not the pooled (80 + 82 + 70) / 3
