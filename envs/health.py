@@ -18,8 +18,7 @@ key                        dtype / shape          meaning
                                                   rate of change and cumulative exertion restart at 0 on reset
 ``"heart_rate"``           float32 ``[B, 1]``     model heart rate (bpm), for plots and anomaly detection
 ``"activity"``             int64 ``[B]``          PAMAP2 activity id being performed (timeline, or the agent's Change)
-``"level"``                float32 ``[B, 1]``     intensity level the interventions have set (1 = as planned, 0 after
-                                                  an Alert): what a coaching app knows it prescribed
+``"level"``                float32 ``[B, 1]``     prescribed intensity level (1 = as planned, 0 after an Alert)
 ``("episode", "return")``  float32 ``[B, 1]``     sum of rewards since the episode's reset
 ``("episode", "violations")``  int64 ``[B, 1]``   number of steps that ended with heart rate > 160 bpm
 ``("episode", "length")``  int64 ``[B, 1]``       steps since the reset

@@ -203,7 +203,8 @@ def test_alert_costs_only_outside_danger_and_holds_the_stop():
 
 def test_level_observation_is_the_prescribed_intensity():
     """``"level"`` is 1 after a reset, follows Rest (-0.25) and Increase (+0.25, at most 2) on the step they act,
-    is 0 after an Alert, back to 1 at a new activity segment (0.25 while an Alert's stop runs), and always equals the env's own ``level``."""
+    is 0 after an Alert, back to 1 at a new activity segment (0.25 while an Alert's stop runs), and always equals
+    the env's own ``level``."""
     env = make(6, seed=5, rate_hz=0.2)  # 5 s a step: the Alert's 30 s stop lasts 6 steps
     td = env.reset()
     assert torch.equal(td["level"], torch.ones(6, 1))

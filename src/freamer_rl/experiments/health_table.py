@@ -142,8 +142,8 @@ def _ci_cell(scores: dict[str, list[float]], digits: int = 1) -> str:
 
 def _loso_row(enc: str, by_fold: dict[str, list[dict[str, float]]]) -> str:
     """One encoder's overall row: reward, the rule and the oracle on the same episodes, the paired difference to the
-    rule (and to the heart-rate controller, where scored) and the fraction of the oracle (each a mean over folds with its subject bootstrap), folds at or above the
-    rule, and each fold's mean reward / rule."""
+    rule (and to the heart-rate controller, where scored) and the fraction of the oracle (each a mean over folds with
+    its subject bootstrap), folds at or above the rule, and each fold's mean reward / rule."""
     reward = _fold_values(by_fold, lambda r: r["eval_return_mean"])
     rule = _fold_values(by_fold, lambda r: r["eval_ref_hr_threshold_return"])
     oracle = _fold_values(by_fold, lambda r: r["eval_ref_oracle_return"])
@@ -176,8 +176,9 @@ def loso_markdown(results: list[dict]) -> list[str]:
         "Reward: the real-env evaluation return on the held-out subject; HR rule / oracle: the heart-rate rule's and "
         "the oracle planner's return on the same episodes; - HR rule: the paired difference; of oracle: reward / "
         "oracle; - controller: the paired difference to the heart-rate controller (the rule plus Increase back to plan "
-        "below 145 bpm; empty where not scored). Each a mean over the folds (every fold weighs the same) with a 95% two-level bootstrap interval "
-        "(folds resampled, then each fold's seeds). At >= rule: folds whose mean reward is at or above the rule's. "
+        "below 145 bpm; empty where not scored). Each a mean over the folds (every fold weighs the same) with a 95% "
+        "two-level bootstrap interval (folds resampled, then each fold's seeds). At >= rule: folds whose mean reward "
+        "is at or above the rule's. "
         "Per fold: held-out subjects: mean reward / mean HR rule over its seeds.",
         "",
         "| encoder | folds | runs | reward [95% CI] | HR rule | oracle | - HR rule [95% CI] | - controller [95% CI] "
