@@ -212,8 +212,7 @@ class HealthEnv(EnvBase):
         self._met = t(met_table(), f32)
         self._group = t(group_table(), torch.int64)
         change = np.full(MAX_ACTIVITY_ID + 1, 4, np.int64)
-        for a, b in CHANGE_TO.items():
-            change[a] = b
+        change[list(CHANGE_TO)] = list(CHANGE_TO.values())
         self._change = t(change, torch.int64)
         self._eye = torch.eye(len(ACTIVITY_GROUP_NAMES), device=dev, dtype=f32)
         self._hold_steps = max(1, int(round(self.dyn.alert_hold_s * self.rate_hz)))
