@@ -205,8 +205,7 @@ def prior_module(prior: ActionPriorConfig | None, num_actions: int) -> Threshold
     if prior is None or prior.key is None:
         return None
     cond = prior.condition
-    if cond.key is None:
-        return ThresholdRulePrior(list(prior.thresholds), list(prior.actions), num_actions, prior.logit)
+    row = None if cond.key is None else list(cond.actions)
     return ThresholdRulePrior(
-        list(prior.thresholds), list(prior.actions), num_actions, prior.logit, cond.threshold, list(cond.actions)
+        list(prior.thresholds), list(prior.actions), num_actions, prior.logit, cond.threshold, row
     )
