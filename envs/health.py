@@ -170,10 +170,9 @@ class HealthEnv(EnvBase):
     ) -> None:
         if not 0.0 <= float(gain_jitter) < 1.0:
             raise ValueError(f"gain_jitter: expected a fraction in [0, 1), got {gain_jitter!r}")
-        if int(batch_size) != batch_size or batch_size < 1:
-            raise ValueError(f"batch_size: expected an integer >= 1, got {batch_size!r}")
-        if int(episode_length) != episode_length or episode_length < 1:
-            raise ValueError(f"episode_length: expected an integer >= 1, got {episode_length!r}")
+        for name, value in (("batch_size", batch_size), ("episode_length", episode_length)):
+            if int(value) != value or value < 1:
+                raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
         weights = tuple(float(w) for w in reward_weights)
         if len(weights) != 3 or not all(math.isfinite(w) for w in weights):
             raise ValueError(
@@ -190,6 +189,16 @@ class HealthEnv(EnvBase):
         self.subjects = tables.subjects
         self.rate_hz = tables.rate_hz
         self.dt = 1.0 / tables.rate_hz
+        self._bind_tables(tables)
+        self._st = self._fresh_state()
+        self._rng = torch.Generator(device=self.device)
+        self._make_specs()
+        if seed is None:
+            seed = int(torch.empty((), dtype=torch.int64).random_().item())
+        self.set_seed(int(seed))
+
+    def _bind_tables(self, tables: _SubjectTables) -> None:
+        """The subjects' timelines and the dynamics' constants as tensors on the env's device."""
         dev = self.device
 
         def t(x, dtype=None):
@@ -223,10 +232,11 @@ class HealthEnv(EnvBase):
         edges[2] = float(np.nextafter(np.float32(edges[2]), np.float32(np.inf)))
         self._zone_edges = t(edges, f32)
 
-        B = self.B
+    def _fresh_state(self) -> types.SimpleNamespace:
+        """Mutable per-element state ``[B]``, in a plain namespace (nn.Module.__setattr__ is slow on the hot path)."""
+        B, dev, f32 = self.B, self.device, torch.float32
         z = functools.partial(torch.zeros, B, device=dev)
-        # mutable per-element state, in a plain namespace (nn.Module.__setattr__ is slow on the hot path)
-        self._st = types.SimpleNamespace(
+        return types.SimpleNamespace(
             subject_index=z(dtype=torch.int64),  # index into self.subjects
             cursor=z(dtype=torch.int64),  # window index in the subject's timeline
             planned=z(dtype=torch.int64),  # timeline activity at the cursor
@@ -249,12 +259,6 @@ class HealthEnv(EnvBase):
             length=torch.ones(B, dtype=torch.int64, device=dev),
         )
 
-        self._rng = torch.Generator(device=dev)
-        self._make_specs()
-        if seed is None:
-            seed = int(torch.empty((), dtype=torch.int64).random_().item())
-        self.set_seed(int(seed))
-
     # ------------------------------------------------------------------------------------------------------------------
     def _make_specs(self) -> None:
         B, dev = self.B, self.device
@@ -276,12 +280,8 @@ class HealthEnv(EnvBase):
         )
         self.action_spec = Categorical(len(HEALTH_ACTIONS), shape=(B,), dtype=torch.int64, device=dev)
         self.reward_spec = Unbounded(shape=(B, 1), dtype=torch.float32, device=dev)
-        self.done_spec = Composite(
-            done=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            terminated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            truncated=Categorical(2, shape=(B, 1), dtype=torch.bool, device=dev),
-            shape=(B,),
-        )
+        flag = functools.partial(Categorical, 2, shape=(B, 1), dtype=torch.bool, device=dev)
+        self.done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=(B,))
 
     # ------------------------------------------------------------------------------------------------------------------
     def _effective_activity(self) -> torch.Tensor:

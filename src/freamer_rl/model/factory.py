@@ -292,7 +292,6 @@ def build_filter_mix_memory(
     if missing:
         raise ValueError(f"gate_init: no initial gate for {missing} (given: {sorted(gate_init)})")
     d_out = dim if output_dim is None else output_dim
-    steps: list[nn.Module] = []
     refiners = nn.ModuleDict()
     for m in refined:
         refiners[m] = FlowMatchingRefiner(
@@ -305,18 +304,7 @@ def build_filter_mix_memory(
             reliability=reliability,
             reliability_margin=reliability_margin,
         )
-    stack_in = [("refined", m) for m in modalities] if placement == "pre" else [("embed", m) for m in modalities]
-    for m in modalities if placement == "pre" else []:
-        steps.append(KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]))
-    presence = dict(presence_keys or {})
-    unknown = sorted(set(presence) - set(modalities))
-    if unknown:
-        raise ValueError(f"presence_keys: {unknown} are not among the modalities {list(modalities)}")
-    for i, m in enumerate(modalities):
-        if m in presence:  # a dropped sensor's row enters the fuser as zeros
-            steps.append(KeyedModule(PresenceMask(), in_keys=[stack_in[i], presence[m]], out_keys=[("masked", m)]))
-            stack_in[i] = ("masked", m)
-    steps.append(KeyedModule(StackModalities(), in_keys=stack_in, out_keys=["modal_stack"]))
+    steps = _refine_and_stack(modalities, refiners if placement == "pre" else None, presence_keys)
     fuser = _build_fuser(fusion, len(modalities), dim, fno_modes, fno_residual_scale, fno_output_norm, fusion_hidden)
     fused_key = ("embed", "fused") if placement == "post" else "fused"
     steps.append(KeyedModule(fuser, in_keys=["modal_stack"], out_keys=[fused_key, "fused_modalities"]))
@@ -337,6 +325,30 @@ def build_filter_mix_memory(
     )
     steps.append(memory if memory is not None else _projection(dim, d_out, out_key))
     return steps, refiners, fuser, memory
+
+
+def _refine_and_stack(
+    modalities: Sequence[str],
+    refiners: nn.ModuleDict | None,
+    presence_keys: Mapping[str, NestedKey] | None,
+) -> list[nn.Module]:
+    """Steps from ``("embed", m)`` to ``"modal_stack" [*B, M, d]``: each modality's refiner (``refiners`` given,
+    placement ``pre``), then its presence mask where ``presence_keys`` names one, then the stack."""
+    steps: list[nn.Module] = []
+    stack_in = [("embed", m) for m in modalities]
+    if refiners is not None:
+        steps = [KeyedModule(refiners[m], in_keys=[("embed", m)], out_keys=[("refined", m)]) for m in modalities]
+        stack_in = [("refined", m) for m in modalities]
+    presence = dict(presence_keys or {})
+    unknown = sorted(set(presence) - set(modalities))
+    if unknown:
+        raise ValueError(f"presence_keys: {unknown} are not among the modalities {list(modalities)}")
+    for i, m in enumerate(modalities):
+        if m in presence:  # a dropped sensor's row enters the fuser as zeros
+            steps.append(KeyedModule(PresenceMask(), in_keys=[stack_in[i], presence[m]], out_keys=[("masked", m)]))
+            stack_in[i] = ("masked", m)
+    steps.append(KeyedModule(StackModalities(), in_keys=stack_in, out_keys=["modal_stack"]))
+    return steps
 
 
 def _check_presence_keys(observation_spec: Composite, presence_keys: Mapping[str, str], env_name: str) -> None:
