@@ -18,8 +18,11 @@ What is timed, per batch of ``ppo.frames_per_batch`` frames (one warm-up batch f
   return the batch; update = ``trainer.compute_advantage`` (the step-mode value pass on root and next states, then
   GAE) + ``trainer.update`` (the PPO epochs). These public seams are newer than 411f9a7: for an older tree the
   benchmark calls the private methods they wrap (``_make_collector``, ``_compute_advantage``, ``_update``). ``collector.update_policy_weights_()`` and the episode statistics are
-  outside both. For commits whose adapters are the top-level package ``envs`` (before they were installed as
-  ``freamer_rl_envs``), ``env_registry.get_env_factory`` is patched to return that tree's ``envs.minigrid`` factory.
+  outside both. Trees before be0f9cc (a flat top level) have the config loader and the trainer at
+  ``freamer_rl.config`` and ``freamer_rl.train``. For commits whose adapters are the top-level package ``envs``,
+  ``env_registry.get_env_factory`` (and ``get_adapter`` where it exists) is patched to return that tree's
+  ``envs.minigrid`` adapter, and ``envs/`` is linked as ``freamer_rl_envs`` in the extracted tree (the name later
+  trees installed it under). The first warm-up batch's seconds (compiling included) are reported as "first batch".
 * PPO-MLP: ``PPOBaselineTrainer`` of ``recipes/baselines/ppo_mlp_n2s4.yaml`` (``trainer: ppo_baseline``) with the
   FreamerV1 recipe's ``env.id`` and ``ppo.frames_per_batch``, timed the same way: collection = ``next()`` on its
   collector, update = ``trainer.learn`` (GAE with the value network, then the PPO epochs). It always uses one env
@@ -73,7 +76,7 @@ CSV_FIELDS = [
 ]
 ROUND_FIELDS = (
     "round threads num_envs method frames collect_s advantage_s update_s collect_fps update_fps overall_fps wall_s "
-    "num_threads source error"
+    "first_batch_s num_threads source error"
 ).split()
 
 
@@ -100,10 +103,25 @@ def _patch_legacy_adapters(tree: Path) -> bool:
     if not (tree / "envs" / "minigrid.py").is_file():
         return False
     import envs.minigrid  # noqa: PLC0415 (from the old tree, via PYTHONPATH)
-    from freamer_rl.run import env_registry
 
+    env_registry = _from_tree("freamer_rl.run.env_registry", "freamer_rl.env_registry")
     env_registry.get_env_factory = lambda adapter: envs.minigrid.make_minigrid_env
+    legacy = getattr(envs.minigrid, "ADAPTER", None)  # trees with EnvAdapter (options, batched env) declare one
+    if legacy is not None and hasattr(env_registry, "get_adapter"):
+        env_registry.get_adapter = lambda adapter: legacy
     return True
+
+
+def _from_tree(module: str, flat: str, name: str | None = None):
+    """``module`` (or its attribute ``name``) from the imported tree; trees before be0f9cc (the tiered
+    sub-packages) have it at the flat top-level path ``flat``."""
+    import importlib
+
+    try:
+        mod = importlib.import_module(module)
+    except ModuleNotFoundError:
+        mod = importlib.import_module(flat)
+    return mod if name is None else getattr(mod, name)
 
 
 def _seam(trainer, public: str, private: str):
@@ -117,15 +135,14 @@ def _time_freamer(spec: dict) -> dict:
 
     torch.set_num_threads(spec["threads"])
     import freamer_rl
-    from freamer_rl.trainers.registry import load_config
 
+    load_config = _from_tree("freamer_rl.trainers.registry", "freamer_rl.config", "load_config")
     src = Path(freamer_rl.__file__).resolve()
     tree = Path(spec["tree"]).resolve()
     if tree not in src.parents:
         raise RuntimeError(f"imported freamer_rl from {src}, expected it under {tree}")
     patched = _patch_legacy_adapters(tree) if spec.get("patch_envs") else False
-    from freamer_rl.trainers.minigrid_ppo import Trainer
-
+    Trainer = _from_tree("freamer_rl.trainers.minigrid_ppo", "freamer_rl.train", "Trainer")  # noqa: N806
     k, warmup = spec["batches"], spec["warmup"]
     cfg = load_config(spec["recipe"], spec["overrides"])
     fpb = cfg.ppo.frames_per_batch
@@ -149,6 +166,8 @@ def _time_freamer(spec: dict) -> dict:
                 t2 = time.perf_counter()
                 update_step(data)
             t3 = time.perf_counter()
+            if i == 0:  # compiling (model.compile) happens here
+                first_s = t3 - t0
             trainer.frames += data.numel()
             collector.update_policy_weights_()
             if i >= warmup:
@@ -161,7 +180,9 @@ def _time_freamer(spec: dict) -> dict:
         shutil.rmtree(run_dir, ignore_errors=True)
     out = _fps_summary(frames, collect, advantage, update)
     out.update(
-        source=str(src.parent) + (" (+ envs.minigrid patch)" if patched else ""), num_threads=torch.get_num_threads()
+        source=str(src.parent) + (" (+ envs.minigrid patch)" if patched else ""),
+        num_threads=torch.get_num_threads(),
+        first_batch_s=first_s,
     )
     return out
 
@@ -192,6 +213,8 @@ def _time_baseline(spec: dict) -> dict:
             t1 = time.perf_counter()
             trainer.learn(data)
             t2 = time.perf_counter()
+            if i == 0:
+                first_s = t2 - t0
             trainer.frames += data.numel()
             collector.update_policy_weights_()
             if i >= warmup:
@@ -203,7 +226,7 @@ def _time_baseline(spec: dict) -> dict:
         shutil.rmtree(run_dir, ignore_errors=True)
     out = _fps_summary(frames, collect, [0.0] * len(collect), update)
     source = recipe.relative_to(ROOT) if recipe.is_relative_to(ROOT) else recipe
-    out.update(source=str(source), num_threads=torch.get_num_threads())
+    out.update(source=str(source), num_threads=torch.get_num_threads(), first_batch_s=first_s)
     return out
 
 
@@ -248,6 +271,9 @@ def extract_commit(commit: str, dest: Path) -> str:
     ).stdout
     dest.mkdir(parents=True, exist_ok=True)
     subprocess.run(["tar", "-x", "-C", str(dest)], input=archive, check=True)
+    if (dest / "envs").is_dir() and not (dest / "src" / "freamer_rl_envs").is_dir():
+        # trees that installed envs/ as ``freamer_rl_envs`` import it under that name: the tree root is on PYTHONPATH
+        (dest / "freamer_rl_envs").symlink_to("envs", target_is_directory=True)
     return sha
 
 
@@ -426,16 +452,17 @@ def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Pa
         f"its own subprocess); per measurement {meta['warmup']} warm-up batch(es) + {meta['batches']} timed batches of "
         f"{meta['frames_per_batch']} frames. Overrides: {meta['overrides'] or 'none'}.",
         "Cells: mean (min-max) over rounds, frames/s. Update = GAE value pass + GAE + PPO epochs "
-        "(FreamerV1: `_compute_advantage` + `_update`); overall = frames / (collection + update).",
+        "(FreamerV1: `_compute_advantage` + `_update`); overall = frames / (collection + update). First batch: "
+        "seconds of the first warm-up batch (collection + update, compiling included), mean over rounds.",
         "",
-        "| threads | env.num_envs | code | collection fps | update fps | overall fps |",
-        "|---:|---:|---|---:|---:|---:|",
+        "| threads | env.num_envs | code | collection fps | update fps | overall fps | first batch s |",
+        "|---:|---:|---|---:|---:|---:|---:|",
     ]
     for r in rows:
         n = "1 (own)" if r["method"] == "baseline" else r["num_envs"]
         lines.append(
             f"| {r['threads']} | {n} | {names[r['method']]} | {_fmt(r['_collect_fps'])} | "
-            f"{_fmt(r['_update_fps'])} | {_fmt(r['_overall_fps'])} |"
+            f"{_fmt(r['_update_fps'])} | {_fmt(r['_overall_fps'])} | {_first_batch(rounds, r)} |"
         )
     cur = [r for r in rows if r["method"] == "current"]
     if any(r.get("_overall_vs_old") or r.get("_overall_vs_baseline") for r in cur):
@@ -453,6 +480,15 @@ def write_report(rows: list[dict], rounds: list[dict], notes: list[str], out: Pa
             ]
             lines.append(f"| {r['threads']} | {r['num_envs']} | " + " | ".join(cells) + " |")
     return _finish_report(lines, rounds, notes, out, meta)
+
+
+def _first_batch(rounds: list[dict], row: dict) -> str:
+    """Mean seconds of the first warm-up batch over the rounds of ``row``'s configuration and method."""
+    keys = ("threads", "num_envs", "method")
+    seconds = [
+        r["first_batch_s"] for r in rounds if r.get("first_batch_s") is not None and all(r[k] == row[k] for k in keys)
+    ]
+    return f"{statistics.mean(seconds):.1f}" if seconds else "n/a"
 
 
 def _load() -> str:

@@ -59,7 +59,8 @@ def test_throughput_benchmark_writes_tables(tmp_path):
     with (tmp_path / "rounds.csv").open() as f:
         rounds = list(csv.DictReader(f))
     assert [r["method"] for r in rounds] == ["current", "baseline"]
-    assert all(r["error"] == "" and r["num_threads"] == "1" for r in rounds)
+    assert all(r["error"] == "" and r["num_threads"] == "1" and float(r["first_batch_s"]) > 0 for r in rounds)
+    assert "| first batch s |" in text
     assert rounds[0]["source"].startswith(str(ROOT / "src"))  # the current code is this checkout's
 
 
@@ -111,6 +112,26 @@ def test_old_commit_extracts_with_its_envs_package(tmp_path):
     assert sha.startswith("411f9a7")
     assert (tmp_path / "src" / "freamer_rl" / "train.py").is_file()
     assert (tmp_path / "envs" / "minigrid.py").is_file()
+
+
+def test_flat_layout_commit_is_timed_from_its_own_tree(tmp_path):
+    """5ad16f0 (the code of the README's first throughput table) predates the tiered sub-packages and imports its
+    adapters as ``freamer_rl_envs``: the worker loads its config loader, trainer and MiniGrid adapter from its own
+    tree and times one small eager batch."""
+    try:
+        tb.extract_commit("5ad16f0", tmp_path / "tree")
+    except (subprocess.CalledProcessError, FileNotFoundError):
+        pytest.skip("commit 5ad16f0 not in this checkout's history")
+    tree = tmp_path / "tree"
+    assert (tree / "freamer_rl_envs" / "minigrid.py").is_file()  # the envs/ package under its installed name
+    small = ["model.compile=false", "ppo.frames_per_batch=256", "ppo.minibatch_size=128", "ppo.epochs=1"]
+    spec = {"method": "old", "threads": 1, "num_envs": 4, "batches": 1, "warmup": 0, "seed": 0, "patch_envs": True}
+    spec.update(recipe=str(tree / "recipes" / "minigrid_multiroom_n2s4.yaml"), tree=str(tree))
+    spec["overrides"] = [*small, "run.threads=1", "env.num_envs=4", "run.total_frames=256"]
+    res = tb.run_job(spec, tree, timeout=300)
+    assert "error" not in res, res["error"]
+    assert res["source"] == f"{tree.resolve() / 'src' / 'freamer_rl'} (+ envs.minigrid patch)"
+    assert res["frames"] == 256 and res["overall_fps"] > 0 and res["first_batch_s"] > 0
 
 
 def test_crafter_suite_writes_every_row_and_ratio(tmp_path, monkeypatch):
