@@ -55,7 +55,8 @@ import tempfile
 import time
 from pathlib import Path
 
-import throughput_crafter as tc  # benchmarks/ is on sys.path: this script's own folder
+import old_trees  # benchmarks/ is on sys.path: this script's own folder
+import throughput_crafter as tc
 
 ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_RECIPE = ROOT / "recipes" / "minigrid_multiroom_n2s4.yaml"
@@ -97,52 +98,19 @@ def _fps_summary(frames: int, collect: list[float], advantage: list[float], upda
     }
 
 
-def _patch_legacy_adapters(tree: Path) -> bool:
-    """Old trees ship the adapters as the top-level package ``envs``; the installed entry point names the current
-    ``freamer_rl_envs``, which old code cannot import. Point the registry at the tree's own MiniGrid factory."""
-    if not (tree / "envs" / "minigrid.py").is_file():
-        return False
-    import envs.minigrid  # noqa: PLC0415 (from the old tree, via PYTHONPATH)
-
-    env_registry = _from_tree("freamer_rl.run.env_registry", "freamer_rl.env_registry")
-    env_registry.get_env_factory = lambda adapter: envs.minigrid.make_minigrid_env
-    legacy = getattr(envs.minigrid, "ADAPTER", None)  # trees with EnvAdapter (options, batched env) declare one
-    if legacy is not None and hasattr(env_registry, "get_adapter"):
-        env_registry.get_adapter = lambda adapter: legacy
-    return True
-
-
-def _from_tree(module: str, flat: str, name: str | None = None):
-    """``module`` (or its attribute ``name``) from the imported tree; trees before be0f9cc (the tiered
-    sub-packages) have it at the flat top-level path ``flat``."""
-    import importlib
-
-    try:
-        mod = importlib.import_module(module)
-    except ModuleNotFoundError:
-        mod = importlib.import_module(flat)
-    return mod if name is None else getattr(mod, name)
-
-
-def _seam(trainer, public: str, private: str):
-    """``trainer``'s public seam, or the private method it wraps on an older tree (411f9a7 has no public seams)."""
-    fn = getattr(trainer, public, None)
-    return fn if callable(fn) else getattr(trainer, private)
-
-
 def _time_freamer(spec: dict) -> dict:
     import torch
 
     torch.set_num_threads(spec["threads"])
     import freamer_rl
 
-    load_config = _from_tree("freamer_rl.trainers.registry", "freamer_rl.config", "load_config")
+    load_config = old_trees.from_tree("freamer_rl.trainers.registry", "freamer_rl.config", "load_config")
     src = Path(freamer_rl.__file__).resolve()
     tree = Path(spec["tree"]).resolve()
     if tree not in src.parents:
         raise RuntimeError(f"imported freamer_rl from {src}, expected it under {tree}")
-    patched = _patch_legacy_adapters(tree) if spec.get("patch_envs") else False
-    Trainer = _from_tree("freamer_rl.trainers.minigrid_ppo", "freamer_rl.train", "Trainer")  # noqa: N806
+    patched = old_trees.patch_legacy_adapters(tree) if spec.get("patch_envs") else False
+    Trainer = old_trees.from_tree("freamer_rl.trainers.minigrid_ppo", "freamer_rl.train", "Trainer")  # noqa: N806
     k, warmup = spec["batches"], spec["warmup"]
     cfg = load_config(spec["recipe"], spec["overrides"])
     fpb = cfg.ppo.frames_per_batch
@@ -150,9 +118,9 @@ def _time_freamer(spec: dict) -> dict:
     try:
         trainer = Trainer(cfg, run_dir / "run", resume=False)
         torch.set_num_threads(spec["threads"])
-        collector = _seam(trainer, "make_collector", "_make_collector")((warmup + k) * fpb)
-        compute_advantage = _seam(trainer, "compute_advantage", "_compute_advantage")
-        update_step = _seam(trainer, "update", "_update")
+        collector = old_trees.seam(trainer, "make_collector", "_make_collector")((warmup + k) * fpb)
+        compute_advantage = old_trees.seam(trainer, "compute_advantage", "_compute_advantage")
+        update_step = old_trees.seam(trainer, "update", "_update")
         # run.update_threads as train() applies it (trees older than the option learn at run.threads)
         learning_threads = getattr(trainer, "learning_threads", contextlib.nullcontext)
         it = iter(collector)
