@@ -19,9 +19,6 @@ def patch_legacy_adapters(tree: Path) -> bool:
 
     env_registry = from_tree("freamer_rl.run.env_registry", "freamer_rl.env_registry")
     env_registry.get_env_factory = lambda adapter: envs.minigrid.make_minigrid_env
-    legacy = getattr(envs.minigrid, "ADAPTER", None)  # trees with EnvAdapter (options, batched env) declare one
-    if legacy is not None and hasattr(env_registry, "get_adapter"):
-        env_registry.get_adapter = lambda adapter: legacy
     return True
 
 

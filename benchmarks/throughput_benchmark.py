@@ -20,9 +20,9 @@ What is timed, per batch of ``ppo.frames_per_batch`` frames (one warm-up batch f
   benchmark calls the private methods they wrap (``_make_collector``, ``_compute_advantage``, ``_update``). ``collector.update_policy_weights_()`` and the episode statistics are
   outside both. Trees before be0f9cc (a flat top level) have the config loader and the trainer at
   ``freamer_rl.config`` and ``freamer_rl.train``. For commits whose adapters are the top-level package ``envs``,
-  ``env_registry.get_env_factory`` (and ``get_adapter`` where it exists) is patched to return that tree's
-  ``envs.minigrid`` adapter, and ``envs/`` is linked as ``freamer_rl_envs`` in the extracted tree (the name later
-  trees installed it under). The first warm-up batch's seconds (compiling included) are reported as "first batch".
+  ``envs/`` is linked as ``freamer_rl_envs`` in the extracted tree (the name the installed entry points import, so
+  they load that tree's adapters), and ``env_registry.get_env_factory`` is patched to return that tree's
+  ``envs.minigrid`` factory (411f9a7's adapter module declares no ``ADAPTER``). The first warm-up batch's seconds (compiling included) are reported as "first batch".
 * PPO-MLP: ``PPOBaselineTrainer`` of ``recipes/baselines/ppo_mlp_n2s4.yaml`` (``trainer: ppo_baseline``) with the
   FreamerV1 recipe's ``env.id`` and ``ppo.frames_per_batch``, timed the same way: collection = ``next()`` on its
   collector, update = ``trainer.learn`` (GAE with the value network, then the PPO epochs). It always uses one env
