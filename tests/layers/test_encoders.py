@@ -155,6 +155,32 @@ def test_vision_encoder_cnn_shapes_and_grads(batch):
     _assert_all_grads(enc)
 
 
+@pytest.mark.parametrize("batch", BATCH_SHAPES)
+def test_vision_encoder_flatten_keeps_every_token_in_place(batch):
+    """``pooling="flatten"``: one slot, a Linear of the flattened 7x7 token grid; moving one token's content to another
+    cell changes the output (Slot Attention with the same tokens is only as position-aware as its embedding)."""
+    enc = VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="flatten", num_tokens=49)
+    assert not hasattr(enc, "slot_attention") and enc.num_slots == 1
+    assert enc.flat.in_features == 49 * 16
+    out = enc(torch.randint(0, 256, (*batch, 56, 56, 3), dtype=torch.uint8))
+    assert out.shape == (*batch, 1, D)
+    out.square().mean().backward()
+    _assert_all_grads(enc)
+    tokens = torch.randn(1, 49, 16)
+    swapped = tokens[:, torch.arange(49).roll(1)]
+    assert not torch.allclose(enc.flat(tokens.flatten(1)), enc.flat(swapped.flatten(1)))
+
+
+def test_vision_encoder_flatten_needs_its_token_count():
+    with pytest.raises(ValueError, match="pooling 'flatten' needs the backbone's token count"):
+        VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="flatten")
+    with pytest.raises(ValueError, match="expected 'slots' or 'flatten', got 'max'"):
+        VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="max")
+    enc = VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="flatten", num_tokens=49)
+    with pytest.raises(ValueError, match=r"built for 49 tokens, the backbone gave 64 \(pixels \(64, 64, 3\)\)"):
+        enc(torch.zeros(2, 64, 64, 3, dtype=torch.uint8))
+
+
 def test_vision_encoder_needs_token_dim():
     with pytest.raises(TypeError, match="token_dim"):
         VisionEncoder(torch.nn.Identity(), out_dim=D)

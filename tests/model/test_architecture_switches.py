@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from freamer_rl.errors import CheckpointError, ConfigError
-from freamer_rl.layers.encoders import RewardEncoder
+from freamer_rl.layers.encoders import RewardEncoder, VisionEncoder
 from freamer_rl.layers.fno import FNOFuser
 from freamer_rl.layers.fusion import ConcatFuser, MeanFuser
 from freamer_rl.model.losses import FreamerAuxLoss
@@ -128,6 +128,7 @@ def test_resume_with_another_placement_is_refused(tmp_path):
     [
         ("model.flow.placement=sideways", "model.flow.placement: expected one of pre, post, off"),
         ("model.fusion=attention", "model.fusion: expected one of fno, concat, mean"),
+        ("model.vision.pooling=max", "model.vision.pooling: expected 'slots' or 'flatten', got 'max'"),
         ("model.fusion_hidden=64", "model.fusion_hidden: got 64, but only model.fusion=concat has an MLP"),
         ("model.flow.gate_init.lidar=-1", "model.flow.gate_init: unknown modality 'lidar'"),
         ("model.flow.reliability=sometimes", "model.flow.reliability: expected one of off, gate, weight, both"),
@@ -194,3 +195,21 @@ def test_critic_input_sets_whether_the_value_loss_trains_the_trunk(critic_input)
 def test_critic_input_is_checked():
     with pytest.raises(ConfigError, match="model.critic_input: expected one of shared, detached, got 'frozen'"):
         load_config(TINY, ["model.critic_input=frozen"])
+
+
+def test_vision_flatten_pooling_builds_from_the_env_and_trains(tmp_path):
+    """``model.vision.pooling: flatten`` sizes its Linear from the env's frames (56x56 RGB view -> 7x7 tokens), gives
+    the vision modality one slot, and a tiny run trains it through the trainer."""
+    overrides = ["model.modalities=[vision, reward]", "model.vision.pooling=flatten", "run.total_frames=256"]
+    cfg = load_config(TINY, overrides)
+    torch.manual_seed(0)
+    modules = build_modules(cfg)
+    encoder = next(m for m in modules.encoders.modules() if isinstance(m, VisionEncoder))
+    assert (encoder.pooling, encoder.num_slots, encoder.flat.in_features) == ("flatten", 1, 49 * encoder.token_dim)
+    data = _rollout(cfg, modules)
+    assert data["slots", "vision"].shape == (cfg.env.num_envs, 6, 1, cfg.model.embed_dim)
+    train(cfg, tmp_path / "run")
+    state = load_checkpoint(resolve_checkpoint(tmp_path / "run"))["model"]
+    (key,) = [k for k in state if k.endswith("flat.weight")]
+    assert state[key].shape == encoder.flat.weight.shape
+    assert not torch.equal(state[key], encoder.flat.weight.detach())  # the run's own model, trained from the same seed

@@ -290,6 +290,8 @@ class VisionEncoder(nn.Module):
 
     ``pixels [*B, H, W, C]`` -> backbone tokens ``[*B, N, token_dim]`` (CLIP ViT-B/32: N = 49, token_dim = 768) ->
     Linear(token_dim, out_dim) -> SlotAttention (Eq. A19-A20) -> slots ``[*B, num_slots, out_dim]``.
+    ``pooling="flatten"`` (an ablation, not the paper's) replaces the last two steps by one Linear on the flattened
+    tokens ``[*B, N * token_dim] -> [*B, 1, out_dim]``: the token grid kept in place, no slot competition.
 
     ``backbone`` is any module mapping ``[b, H, W, C]`` pixels to ``[b, N, token_dim]`` tokens and exposing
     ``token_dim`` (:class:`CNNBackbone` or :class:`~freamer_rl.layers.clip_backbone.ClipBackbone`).
@@ -298,7 +300,15 @@ class VisionEncoder(nn.Module):
     slots for the whole sample); the check is skipped (same maths) under vmap/compile.
     """
 
-    def __init__(self, backbone: nn.Module, out_dim: int = 128, num_slots: int = 8, slot_iters: int = 3) -> None:
+    def __init__(
+        self,
+        backbone: nn.Module,
+        out_dim: int = 128,
+        num_slots: int = 8,
+        slot_iters: int = 3,
+        pooling: str = "slots",
+        num_tokens: int | None = None,
+    ) -> None:
         super().__init__()
         token_dim = getattr(backbone, "token_dim", None)
         if not isinstance(token_dim, int):
@@ -306,16 +316,27 @@ class VisionEncoder(nn.Module):
                 f"VisionEncoder backbone {type(backbone).__name__} must expose an int attribute 'token_dim', "
                 f"got {token_dim!r}"
             )
+        if pooling not in ("slots", "flatten"):
+            raise ValueError(f"VisionEncoder pooling: expected 'slots' or 'flatten', got {pooling!r}")
+        if pooling == "flatten" and not (isinstance(num_tokens, int) and num_tokens > 0):
+            raise ValueError(f"VisionEncoder pooling 'flatten' needs the backbone's token count, got {num_tokens!r}")
         self.backbone = backbone
         self.token_dim = token_dim
         self.out_dim = out_dim
         self.slot_dim = out_dim
-        self.num_slots = num_slots
-        self.proj = nn.Linear(token_dim, out_dim)
-        self.slot_attention = SlotAttention(num_slots, out_dim, input_dim=out_dim, iters=slot_iters)
+        self.pooling = pooling
+        if pooling == "slots":
+            self.num_slots = num_slots
+            self.proj = nn.Linear(token_dim, out_dim)
+            self.slot_attention = SlotAttention(num_slots, out_dim, input_dim=out_dim, iters=slot_iters)
+        else:
+            # one "slot": every token in its grid place, as a PPO-CNN's flatten + Linear reads its conv map
+            self.num_slots = 1
+            self.num_tokens = num_tokens
+            self.flat = nn.Linear(num_tokens * token_dim, out_dim)
 
     def forward(self, pixels: torch.Tensor) -> torch.Tensor:
-        """``pixels [*B, H, W, C]`` -> slots ``[*B, num_slots, out_dim]``."""
+        """``pixels [*B, H, W, C]`` -> slots ``[*B, num_slots, out_dim]`` (``num_slots`` is 1 for ``flatten``)."""
         if pixels.dim() < 3:
             raise ValueError(f"VisionEncoder pixels: expected [*B, H, W, C], got {tuple(pixels.shape)}")
         batch_shape = pixels.shape[:-3]
@@ -326,8 +347,15 @@ class VisionEncoder(nn.Module):
                 f"expected [b, N, {self.token_dim}]"
             )
         check_finite(tokens, f"VisionEncoder tokens (from {type(self.backbone).__name__})")
-        feats = self.proj(tokens.to(self.proj.weight.dtype))
-        slots = self.slot_attention(feats)
+        if self.pooling == "flatten":
+            if tokens.shape[1] != self.num_tokens:
+                raise ValueError(
+                    f"VisionEncoder pooling 'flatten': built for {self.num_tokens} tokens, the backbone gave "
+                    f"{tokens.shape[1]} (pixels {tuple(pixels.shape[-3:])})"
+                )
+            slots = self.flat(tokens.to(self.flat.weight.dtype).flatten(1)).unsqueeze(1)
+        else:
+            slots = self.slot_attention(self.proj(tokens.to(self.proj.weight.dtype)))
         return slots.reshape(*batch_shape, self.num_slots, self.out_dim)
 
 

@@ -76,6 +76,8 @@ def check_model_names(model: Any) -> None:
             raise ConfigError(f"model.freeze_encoders: '{m}' is not one of model.modalities {mods}")
     if model.vision.backbone not in ("cnn", "clip"):
         raise ConfigError(f"model.vision.backbone: expected 'cnn' or 'clip', got {model.vision.backbone!r}")
+    if model.vision.pooling not in ("slots", "flatten"):
+        raise ConfigError(f"model.vision.pooling: expected 'slots' or 'flatten', got {model.vision.pooling!r}")
     for m in model.flow.gate_init:
         if m not in MODALITIES and m != "fused":
             raise ConfigError(

@@ -18,6 +18,10 @@ class VisionConfig:
     allow_random_weights: bool = False
     num_slots: int = 8
     slot_iters: int = 3
+    # slots: the paper's Slot Attention over the backbone's tokens (Appendix E.1); flatten: the tokens flattened in
+    # their grid order and projected by one Linear, as TorchRL's PPO-CNN reads its conv map (an ablation; README
+    # "Robustness", pixels alone). num_slots and slot_iters apply to slots only.
+    pooling: str = "slots"
 
 
 @dataclass

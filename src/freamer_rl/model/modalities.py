@@ -177,7 +177,19 @@ def _vision_encoder(ctx: EncoderContext) -> nn.Module:
             checkpoint_path=c.clip_checkpoint,
             allow_random_weights=c.allow_random_weights,
         )
-    return VisionEncoder(backbone, out_dim=ctx.cfg.embed_dim, num_slots=c.num_slots, slot_iters=c.slot_iters)
+    num_tokens = None
+    if c.pooling == "flatten":  # the token count of this env's frames, from one blank frame of its spec's size
+        frame = torch.zeros(1, *(int(n) for n in ctx.specs[0].shape[-3:]), dtype=torch.uint8)
+        with torch.no_grad():
+            num_tokens = int(backbone(frame).shape[1])
+    return VisionEncoder(
+        backbone,
+        out_dim=ctx.cfg.embed_dim,
+        num_slots=c.num_slots,
+        slot_iters=c.slot_iters,
+        pooling=c.pooling,
+        num_tokens=num_tokens,
+    )
 
 
 def _vector_encoder(ctx: EncoderContext) -> nn.Module:
