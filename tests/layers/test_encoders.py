@@ -174,7 +174,7 @@ def test_vision_encoder_flatten_keeps_every_token_in_place(batch):
 def test_vision_encoder_flatten_needs_its_token_count():
     with pytest.raises(ValueError, match="pooling 'flatten' needs the backbone's token count"):
         VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="flatten")
-    with pytest.raises(ValueError, match="expected 'slots' or 'flatten', got 'max'"):
+    with pytest.raises(ValueError, match="expected one of slots, flatten, got 'max'"):
         VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="max")
     enc = VisionEncoder(CNNBackbone(out_dim=16), out_dim=D, pooling="flatten", num_tokens=49)
     with pytest.raises(ValueError, match=r"built for 49 tokens, the backbone gave 64 \(pixels \(64, 64, 3\)\)"):

@@ -128,7 +128,7 @@ def test_resume_with_another_placement_is_refused(tmp_path):
     [
         ("model.flow.placement=sideways", "model.flow.placement: expected one of pre, post, off"),
         ("model.fusion=attention", "model.fusion: expected one of fno, concat, mean"),
-        ("model.vision.pooling=max", "model.vision.pooling: expected 'slots' or 'flatten', got 'max'"),
+        ("model.vision.pooling=max", "model.vision.pooling: expected one of slots, flatten, got 'max'"),
         ("model.fusion_hidden=64", "model.fusion_hidden: got 64, but only model.fusion=concat has an MLP"),
         ("model.flow.gate_init.lidar=-1", "model.flow.gate_init: unknown modality 'lidar'"),
         ("model.flow.reliability=sometimes", "model.flow.reliability: expected one of off, gate, weight, both"),

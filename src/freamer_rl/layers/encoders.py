@@ -285,6 +285,10 @@ class CNNBackbone(nn.Module):
         return tokens.reshape(*batch_shape, h * w, self.out_dim)
 
 
+#: ``VisionEncoder(pooling=...)``: the paper's Slot Attention, or the token grid flattened into one Linear
+VISION_POOLINGS = ("slots", "flatten")
+
+
 class VisionEncoder(nn.Module):
     """Vision encoder (Appendix E.1): backbone patch tokens -> ``F_vision = W_proj F_patch + b_proj`` -> Slot Attention.
 
@@ -316,8 +320,8 @@ class VisionEncoder(nn.Module):
                 f"VisionEncoder backbone {type(backbone).__name__} must expose an int attribute 'token_dim', "
                 f"got {token_dim!r}"
             )
-        if pooling not in ("slots", "flatten"):
-            raise ValueError(f"VisionEncoder pooling: expected 'slots' or 'flatten', got {pooling!r}")
+        if pooling not in VISION_POOLINGS:
+            raise ValueError(f"VisionEncoder pooling: expected one of {', '.join(VISION_POOLINGS)}, got {pooling!r}")
         if pooling == "flatten" and not (isinstance(num_tokens, int) and num_tokens > 0):
             raise ValueError(f"VisionEncoder pooling 'flatten' needs the backbone's token count, got {num_tokens!r}")
         self.backbone = backbone

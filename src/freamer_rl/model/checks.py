@@ -7,6 +7,7 @@ from typing import Any
 
 from freamer_rl.errors import ConfigError
 from freamer_rl.layers.dnc import WRITES
+from freamer_rl.layers.encoders import VISION_POOLINGS
 from freamer_rl.layers.flow_matching import RELIABILITY_MODES
 from freamer_rl.model.action_prior import check_action_prior
 from freamer_rl.model.factory import FUSIONS, PLACEMENTS
@@ -76,8 +77,9 @@ def check_model_names(model: Any) -> None:
             raise ConfigError(f"model.freeze_encoders: '{m}' is not one of model.modalities {mods}")
     if model.vision.backbone not in ("cnn", "clip"):
         raise ConfigError(f"model.vision.backbone: expected 'cnn' or 'clip', got {model.vision.backbone!r}")
-    if model.vision.pooling not in ("slots", "flatten"):
-        raise ConfigError(f"model.vision.pooling: expected 'slots' or 'flatten', got {model.vision.pooling!r}")
+    if model.vision.pooling not in VISION_POOLINGS:
+        expected = ", ".join(VISION_POOLINGS)
+        raise ConfigError(f"model.vision.pooling: expected one of {expected}, got {model.vision.pooling!r}")
     for m in model.flow.gate_init:
         if m not in MODALITIES and m != "fused":
             raise ConfigError(
