@@ -50,6 +50,7 @@ __all__ = [
     "HEALTH_METRICS",
     "PLOT_METRICS",
     "RunRecord",
+    "band_curves",
     "failed_line",
     "mean_std",
     "plot_bands",
@@ -95,6 +96,25 @@ def _as_float(v: Any) -> float:
         return math.nan
 
 
+def band_curves(runs: list[dict], y_key: str, x_key: str = "frames", points: int = 200) -> tuple:
+    """One method's seeds (``runs``: dicts with ``rows`` and optionally ``finished``) on a common x grid: ``(grid
+    [points], ys [len(runs), points])``. The grid ends at the shortest unfinished run; a finished run that stopped
+    early (at its success target) holds its last value up to the longest run, so the mean of an arm whose seeds stop
+    at different frames does not end at the first seed's stop. Rows without ``y_key`` count as NaN; before a run's
+    first value its row is NaN."""
+    ends = [_as_float(r["rows"][-1][x_key]) for r in runs]
+    open_ends = [x for x, r in zip(ends, runs) if not r.get("finished")]
+    grid = np.linspace(0, min(open_ends) if open_ends else max(ends), points)
+    ys = []
+    for r in runs:
+        xs = np.array([_as_float(row[x_key]) for row in r["rows"]], dtype=float)
+        vs = np.array([_as_float(row.get(y_key)) for row in r["rows"]], dtype=float)
+        ok = ~np.isnan(vs)
+        # np.interp holds the last value past a run's end: only a finished run reaches past it (the grid above)
+        ys.append(np.interp(grid, xs[ok], vs[ok], left=np.nan) if ok.any() else np.full_like(grid, np.nan))
+    return grid, np.array(ys)
+
+
 def plot_bands(
     results: list[dict],
     path: Path,
@@ -107,9 +127,9 @@ def plot_bands(
     colors: dict | None = None,
     order: list[str] | None = None,
 ) -> None:
-    """Per method (``results``: dicts with ``method`` and ``rows``): the mean curve across seeds with a min-max band,
-    the seeds' curves put on a common x grid (up to the shortest run). ``order``: the methods' order (default
-    sorted); rows without ``y_key`` count as NaN."""
+    """Per method (``results``: dicts with ``method``, ``rows`` and optionally ``finished``): the mean curve across
+    seeds with a min-max band, the seeds on one grid by :func:`band_curves`. ``order``: the methods' order (default
+    sorted)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -121,15 +141,7 @@ def plot_bands(
         runs = [r for r in results if r["method"] == m and r["rows"]]
         if not runs:
             continue
-        x_max = min(_as_float(r["rows"][-1][x_key]) for r in runs)
-        grid = np.linspace(0, x_max, 200)
-        ys = []
-        for r in runs:
-            xs = np.array([_as_float(row[x_key]) for row in r["rows"]], dtype=float)
-            vs = np.array([_as_float(row.get(y_key)) for row in r["rows"]], dtype=float)
-            ok = ~np.isnan(vs)
-            ys.append(np.interp(grid, xs[ok], vs[ok], left=np.nan) if ok.any() else np.full_like(grid, np.nan))
-        ys = np.array(ys)
+        grid, ys = band_curves(runs, y_key, x_key)
         if np.isnan(ys).all():
             continue
         color = (colors or {}).get(m, f"C{i}")
@@ -141,7 +153,7 @@ def plot_bands(
         ax.axhline(target, color="k", ls=":", lw=0.8)
     ax.set_xlabel(x_key)
     ax.set_ylabel(ylabel or y_key)
-    ax.set_title(title)
+    ax.set_title(title, fontsize=9)
     if ax.get_legend_handles_labels()[0]:
         ax.legend(fontsize=8)
     fig.tight_layout()
@@ -532,7 +544,11 @@ def _curve_rows(results: list[dict]) -> list[dict]:
 def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
     written = []
     for env_dir in dict.fromkeys(r["env_dir"] for r in results):
-        runs = [{"method": r["label"], "rows": r["rows"]} for r in results if r["env_dir"] == env_dir]
+        runs = [
+            {"method": r["label"], "rows": r["rows"], "finished": r["status"] == "done"}
+            for r in results
+            if r["env_dir"] == env_dir
+        ]
         env = next(r["env"] for r in results if r["env_dir"] == env_dir)
         for metric in PLOT_METRICS:
             if not any(not _missing(row.get(metric)) for run in runs for row in run["rows"]):
@@ -543,7 +559,7 @@ def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
                 runs,
                 path,
                 metric,
-                f"{env}: {metric} (mean, min-max across seeds)",
+                f"{env}: {metric} (mean, min-max across seeds; a stopped seed holds its last value)",
                 target=target,
                 order=[lb for lb in labels if any(run["method"] == lb for run in runs)],
             )
