@@ -559,7 +559,7 @@ def _plots(output: Path, results: list[dict], labels: list[str]) -> list[Path]:
                 runs,
                 path,
                 metric,
-                f"{env}: {metric} (mean, min-max across seeds; a stopped seed holds its last value)",
+                f"{env}: {metric}\nmean, min-max across seeds; a seed stopped at its target holds its last value",
                 target=target,
                 order=[lb for lb in labels if any(run["method"] == lb for run in runs)],
             )
